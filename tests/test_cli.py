@@ -1,0 +1,32 @@
+"""The command line as a user runs it."""
+
+from __future__ import annotations
+
+import json
+
+from conftest import REPO, edit
+from typer.testing import CliRunner
+
+from transtac_sim.cli import app
+
+runner = CliRunner()
+
+
+def test_mesh_writes_mesh_markers_summary_and_picture(tmp_path):
+    out = tmp_path / "mesh"
+    r = runner.invoke(app, ["mesh", str(REPO / "scenes/quickstart.toml"), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "tets" in r.output and "min dihedral" in r.output and "s total" in r.output
+    summary = json.loads((out / "summary.json").read_text())
+    markers = json.loads((out / "markers.json").read_text())["markers"]
+    assert summary["markers"] == len(markers) == 110 and summary["quality"]["tets"] > 1000
+    assert (out / "layout.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "gel_mesh.npz").stat().st_size > 0
+
+
+def test_info_and_bad_config_exit_code(repo_copy):
+    r = runner.invoke(app, ["info", str(REPO / "scenes/quickstart.toml")])
+    assert r.exit_code == 0 and "110 x r = 0.25 mm" in r.output
+    bad = edit(repo_copy / "scenes/quickstart.toml", "friction = 0.5", "friction = -1")
+    r = runner.invoke(app, ["info", str(bad)])
+    assert r.exit_code == 2 and "indenters[0].friction" in r.output

@@ -1,0 +1,95 @@
+"""Every kind of bad configuration is refused with a message naming the file, the key and the range."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from conftest import REPO, edit
+
+from transtac_sim.config import ConfigError, load_hardware, load_material, load_scene
+from transtac_sim.scene_setup import load_setup
+from transtac_sim.sensor.assembly import build_sensor
+
+
+def _error(fn, *args) -> str:
+    with pytest.raises(ConfigError) as e:
+        fn(*args)
+    return str(e.value)
+
+
+def test_shipped_files_are_valid():
+    for p in sorted((REPO / "materials").glob("*.toml")):
+        load_material(str(p))
+    for p in sorted((REPO / "hardware_models").glob("*.toml")):
+        load_hardware(p)
+    for p in sorted((REPO / "scenes").glob("*.toml")):
+        load_setup(p)
+
+
+def test_negative_youngs_modulus(repo_copy: Path):
+    p = edit(repo_copy / "materials/solaris.toml", "youngs_modulus_mpa = 0.37", "youngs_modulus_mpa = -0.37")
+    msg = _error(load_material, str(p))
+    assert str(p) in msg and "youngs_modulus_mpa" in msg and "-0.37 is out of range: allowed > 0.0" in msg
+
+
+def test_poisson_ratio_of_one_half(repo_copy: Path):
+    p = edit(repo_copy / "materials/solaris.toml", "poisson_ratio = 0.49", "poisson_ratio = 0.5")
+    msg = _error(load_material, str(p))
+    assert "poisson_ratio" in msg and "0.5 is out of range: allowed < 0.5" in msg
+
+
+def test_unknown_key_and_wrong_type(repo_copy: Path):
+    p = edit(repo_copy / "hardware_models/transtac.toml", "thickness_mm = 5.0", "thicknes_mm = 5.0")
+    msg = _error(load_hardware, p)
+    assert "gel.thicknes_mm: unknown key" in msg and "gel.thickness_mm: required key is missing" in msg
+    p = edit(repo_copy / "hardware_models/transtac.toml", "baseline_mm = 12.0", 'baseline_mm = "wide"')
+    assert "cameras.baseline_mm" in _error(load_hardware, p)
+
+
+def test_malformed_toml_names_the_file(repo_copy: Path):
+    p = repo_copy / "scenes/quickstart.toml"
+    p.write_text(p.read_text() + "\n[mesh\n")
+    msg = _error(load_scene, p)
+    assert str(p) in msg and "not valid TOML" in msg
+
+
+def test_marker_layout_outside_the_gel(repo_copy: Path):
+    # depth + radius beyond the 5 mm gel
+    p = edit(repo_copy / "hardware_models/transtac.toml", "depth_mm = 0.6", "depth_mm = 4.9")
+    msg = _error(load_hardware, p)
+    assert "do not fit inside the 5.0 mm gel" in msg
+    # a measured layout file with one marker beyond the footprint
+    csv = repo_copy / "layout.csv"
+    csv.write_text("x_mm,y_mm,depth_mm\n0,0,0.5\n17.0,0,0.5\n")
+    scene = edit(repo_copy / "scenes/quickstart.toml", 'hardware = "transtac"',
+                 f'hardware = "transtac"\nmarkers = {{ layout = "file", path = "{csv}", radius_mm = 0.25 }}')
+    msg = _error(load_setup, scene)
+    assert str(scene) in msg and "markers[1]" in msg and "outside the gel" in msg and "|x| <= 15.750" in msg
+
+
+def test_poisson_disk_that_cannot_fit(repo_copy: Path):
+    p = edit(repo_copy / "hardware_models/transtac.toml", "count = 110", "count = 5000")
+    msg = _error(build_sensor, p)
+    assert "asked for 5000" in msg and "min_spacing_mm = 1.8" in msg
+
+
+def test_indenter_that_starts_inside_the_gel(repo_copy: Path):
+    scene = edit(repo_copy / "scenes/quickstart.toml", "start_gap_mm = 0.3", "start_gap_mm = -1.0")
+    msg = _error(load_setup, scene)
+    assert "indenters[0].start_gap_mm" in msg and "1 mm inside the gel" in msg
+
+
+def test_trajectory_segment_errors(repo_copy: Path):
+    scene = edit(repo_copy / "scenes/quickstart.toml", '{ kind = "press", depth_mm = 1.0, frames = 4 }',
+                 '{ kind = "press", depth_mm = 1.0, force_n = 2.0, frames = 0 }')
+    msg = _error(load_scene, scene)
+    assert "indenters[0].trajectory[0].frames: 0 is out of range: allowed >= 1" in msg
+
+
+def test_missing_hardware_model_and_wrong_material_kind(repo_copy: Path):
+    scene = edit(repo_copy / "scenes/quickstart.toml", 'hardware = "transtac"', 'hardware = "no_such_sensor"')
+    assert "no_such_sensor" in _error(load_setup, scene)
+    hw = edit(repo_copy / "hardware_models/transtac.toml", 'material = "solaris"', 'material = "acrylic"')
+    msg = _error(build_sensor, hw)
+    assert "gel.material" in msg and "'acrylic' is a dielectric material" in msg

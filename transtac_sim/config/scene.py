@@ -1,0 +1,76 @@
+"""What to simulate (files in ``scenes/*.toml``): the sensor, the indenters and their trajectories,
+the meshing resolution, and the outputs asked for. Units: mm, degrees in files; poses in the gel frame
+(see ``transtac_sim.config.hardware``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from transtac_sim.config.hardware import MarkerLayout
+from transtac_sim.config.trajectory import Segment
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+class SensorRef(_Strict):
+    hardware: str = "transtac"
+    markers: MarkerLayout | None = Field(default=None, description="replaces the hardware model's layout")
+
+class Mesh(_Strict):
+    """Target tet edge lengths: ``edge_mm`` away from contact, ``contact_edge_mm`` in the contact region
+    (the indenters' footprints over their trajectories, grown by ``refine_margin_mm``)."""
+
+    edge_mm: float = Field(default=1.5, gt=0.05, le=50.0)
+    contact_edge_mm: float = Field(default=0.6, gt=0.05, le=50.0)
+    refine_margin_mm: float = Field(default=2.0, ge=0.0, le=100.0)
+
+    @model_validator(mode="after")
+    def _contact_finer(self) -> Mesh:
+        if self.contact_edge_mm > self.edge_mm:
+            raise ValueError(f"contact_edge_mm ({self.contact_edge_mm}) must be <= edge_mm ({self.edge_mm})")
+        return self
+
+class Indenter(_Strict):
+    """A rigid indenter. ``mesh`` is an STL/OBJ/PLY path relative to the scene file, in ``units``.
+    Its start: the mesh origin at ``start_xy_mm`` with its lowest point ``start_gap_mm`` above the
+    contact surface, turned by ``rotation_deg`` (x, then y, then z, about the mesh origin)."""
+
+    name: str = Field(min_length=1)
+    mesh: str
+    units: Literal["mm", "m", "inch"]
+    start_xy_mm: tuple[float, float] = (0.0, 0.0)
+    start_gap_mm: float = Field(default=0.5, ge=-100.0, le=100.0)
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    friction: float = Field(default=0.5, ge=0.0, le=5.0)
+    color_rgb: tuple[float, float, float] = (0.75, 0.75, 0.75)
+    trajectory: list[Segment] = Field(min_length=1)
+
+class Outputs(_Strict):
+    cameras: list[Literal["left", "right"]] = Field(default=["left", "right"], min_length=1)
+    illuminations: list[Literal["uv", "white"]] = Field(default=["uv", "white"])
+    aovs: list[Literal["depth"]] = Field(default_factory=list)
+    labels: bool = True
+
+class Scene(_Strict):
+    name: str = Field(min_length=1)
+    seed: int = Field(default=0, ge=0)
+    sensor: SensorRef = SensorRef()
+    mesh: Mesh = Mesh()
+    indenters: list[Indenter] = Field(default_factory=list)
+    outputs: Outputs = Outputs()
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> Scene:
+        names = [i.name for i in self.indenters]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"indenter names must be unique; repeated: {sorted(dup)}")
+        return self
+
+    @property
+    def frame_count(self) -> int:
+        """Frames in the sequence: the longest indenter trajectory (1 for a contact-free scene)."""
+        return max((sum(s.frames for s in i.trajectory) for i in self.indenters), default=1)

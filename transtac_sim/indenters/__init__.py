@@ -1,0 +1,1 @@
+"""Rigid indenters: loading meshes in declared units, the parametric library, start poses."""

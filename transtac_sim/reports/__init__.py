@@ -1,0 +1,1 @@
+"""Pictures and summaries for people: mesh and marker layout figures, stage reports."""

@@ -1,0 +1,51 @@
+"""A scene file resolved into everything the stages need: the sensor, and each indenter's checked mesh
+and start pose. This is where references between files (hardware model, materials, meshes) are
+followed and checked, so that a bad file fails here with its name, before any solver runs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from transtac_sim.config import ConfigError, Scene, load_scene
+from transtac_sim.config.scene import Indenter
+from transtac_sim.indenters.loading import IndenterMesh, IndenterMeshError, load_indenter_mesh
+from transtac_sim.indenters.placement import start_pose
+from transtac_sim.sensor.assembly import Sensor, build_sensor
+
+
+@dataclass(frozen=True)
+class PlacedIndenter:
+    config: Indenter
+    mesh: IndenterMesh
+    start_pose: np.ndarray  # 4x4, indenter frame -> gel frame, mm
+
+
+@dataclass(frozen=True)
+class SceneSetup:
+    scene: Scene
+    path: Path
+    sensor: Sensor
+    indenters: list[PlacedIndenter]
+
+    @property
+    def has_contact(self) -> bool:
+        return bool(self.indenters)
+
+
+def load_setup(path: str | Path) -> SceneSetup:
+    """Load ``path`` and everything it refers to; raises ConfigError naming the file and key at fault."""
+    path = Path(path).resolve()
+    scene = load_scene(path)
+    sensor = build_sensor(scene.sensor.hardware, scene.sensor.markers, layout_source=path, relative_to=path.parent)
+    placed = []
+    for i, cfg in enumerate(scene.indenters):
+        key = f"indenters[{i}]"
+        try:
+            mesh = load_indenter_mesh(path.parent / cfg.mesh, cfg.units)
+        except IndenterMeshError as e:
+            raise ConfigError(path, [(f"{key}.mesh", str(e))]) from None
+        placed.append(PlacedIndenter(cfg, mesh, start_pose(cfg, mesh, sensor.gel_size_mm, source=str(path), key=key)))
+    return SceneSetup(scene, path, sensor, placed)

@@ -1,0 +1,1 @@
+"""Sensor assembly: hardware model + materials + marker layout -> a Sensor with its calibration."""

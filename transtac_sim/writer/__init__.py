@@ -1,0 +1,1 @@
+"""Writer stage: files on disk, always written atomically."""
