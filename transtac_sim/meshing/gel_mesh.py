@@ -9,6 +9,8 @@ vertices within that envelope of a face are snapped onto it, so the bonded face 
 
 from __future__ import annotations
 
+import contextlib
+import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,10 +74,11 @@ def tetrahedralize_gel(size_mm: tuple[float, float, float], region: Rect | None,
     box = trimesh.creation.box((w, h, t))
     box.apply_translation((0, 0, t / 2))
     bg_v, bg_t, bg_val = sizing_field(size_mm, region, edge_mm, contact_edge_mm)
-    v, tets = pytetwild.tetrahedralize(
-        box.vertices, box.faces.astype(np.int32), edge_length_abs=edge_mm,
-        bg_vertices=bg_v, bg_tets=bg_t, bg_values=bg_val, quiet=True, num_threads=0,
-    )
+    with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp):  # fTetWild drops a file in the cwd
+        v, tets = pytetwild.tetrahedralize(
+            box.vertices, box.faces.astype(np.int32), edge_length_abs=edge_mm,
+            bg_vertices=bg_v, bg_tets=bg_t, bg_values=bg_val, quiet=True, num_threads=0,
+        )
     v = np.asarray(v, dtype=np.float64)
     envelope = 1e-3 * np.linalg.norm([w, h, t])
     for axis, planes in ((0, (-w / 2, w / 2)), (1, (-h / 2, h / 2)), (2, (0.0, t))):
