@@ -38,8 +38,14 @@ class SceneSetup:
 def load_setup(path: str | Path) -> SceneSetup:
     """Load ``path`` and everything it refers to; raises ConfigError naming the file and key at fault."""
     path = Path(path).resolve()
-    scene = load_scene(path)
-    sensor = build_sensor(scene.sensor.hardware, scene.sensor.markers, layout_source=path, relative_to=path.parent)
+    return build_setup(load_scene(path), path)
+
+
+def build_setup(scene: Scene, path: Path, *, marker_seed: int | None = None) -> SceneSetup:
+    """Resolve ``scene`` (read from ``path``: relative references start there); ``marker_seed`` replaces
+    the marker layout's seed (domain randomisation)."""
+    sensor = build_sensor(scene.sensor.hardware, scene.sensor.markers, layout_source=path, relative_to=path.parent,
+                          marker_seed=marker_seed)
     placed = []
     for i, cfg in enumerate(scene.indenters):
         key = f"indenters[{i}]"

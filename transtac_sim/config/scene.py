@@ -9,6 +9,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from transtac_sim.config.hardware import MarkerLayout
+from transtac_sim.config.randomize import Randomize
 from transtac_sim.config.trajectory import Segment
 
 
@@ -57,10 +58,12 @@ class Outputs(_Strict):
 class Scene(_Strict):
     name: str = Field(min_length=1)
     seed: int = Field(default=0, ge=0)
+    sequences: int = Field(default=1, ge=1, le=1_000_000, description="sequences in a generated dataset")
     sensor: SensorRef = SensorRef()
     mesh: Mesh = Mesh()
     indenters: list[Indenter] = Field(default_factory=list)
     outputs: Outputs = Outputs()
+    randomize: Randomize | None = None
 
     @model_validator(mode="after")
     def _unique_names(self) -> Scene:

@@ -90,11 +90,15 @@ def _material(name: str, kind: type, source: Path, key: str, relative_to: Path):
 
 
 def build_sensor(hardware: str | Path = "transtac", marker_layout: MarkerLayout | None = None,
-                 *, layout_source: str | Path | None = None, relative_to: Path | None = None) -> Sensor:
-    """Assemble a sensor from a hardware model (name or path), optionally with another marker layout."""
+                 *, layout_source: str | Path | None = None, relative_to: Path | None = None,
+                 marker_seed: int | None = None) -> Sensor:
+    """Assemble a sensor from a hardware model (name or path), optionally with another marker layout
+    and another seed for it."""
     hw, path = load_hardware(hardware, relative_to)
     here = path.parent
     layout = marker_layout or hw.markers.arrangement
+    if marker_seed is not None and hasattr(layout, "seed"):
+        layout = layout.model_copy(update={"seed": marker_seed})
     src = layout_source or path
     markers = marker_centres(layout, hw.gel.size_mm, hw.gel.thickness_mm, source=src,
                              relative_to=Path(src).parent if marker_layout else here)
