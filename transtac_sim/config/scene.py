@@ -54,6 +54,7 @@ class Outputs(_Strict):
     illuminations: list[Literal["uv", "white"]] = Field(default=["uv", "white"])
     aovs: list[Literal["depth"]] = Field(default_factory=list)
     labels: bool = True
+    frame_rate_hz: float = Field(default=30.0, gt=0.0, le=10_000.0, description="time_s of frame i is i / rate")
 
 class Scene(_Strict):
     name: str = Field(min_length=1)

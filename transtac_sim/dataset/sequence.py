@@ -1,0 +1,114 @@
+"""One sequence of a dataset: physics frame by frame (warm-started), then for every frame not yet on disk:
+render, camera model, labels, write. Runs in a worker process or a Ray task; returns one status record
+per frame with its per-stage seconds.
+
+Stages run only when an output needs them: no FEM for a contact-free scene (the gel stays at rest), no
+render without illuminations or AOVs, no labels when ``outputs.labels`` is false.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from transtac_sim.config.scene import Scene
+from transtac_sim.dataset import contract
+from transtac_sim.dataset.frame_writer import FrameOutput, is_complete, write_frame
+from transtac_sim.dataset.randomize import sequence_variant
+
+
+class StageClock:
+    """Seconds spent per stage, summed."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def run_sequence(task) -> list[dict]:
+    from transtac_sim.scene_setup import build_setup
+    from transtac_sim.simulation import SimulationFailed, simulate_frames
+
+    resolved = json.loads(task.scene_json)
+    limit = resolved.pop("frames_per_sequence")
+    scene = Scene.model_validate(resolved)
+    root = Path(task.root)
+    seq = contract.sequence_name(task.index)
+    todo = [f for f in range(limit) if not is_complete(root, seq, f)]
+    if not todo:
+        return [{"sequence": seq, "frame": f, "status": "done", "skipped": True} for f in range(limit)]
+    clock = StageClock()
+    variant = sequence_variant(scene, task.index)
+    with clock("setup"):
+        setup = build_setup(variant.scene, Path(task.scene_path), marker_seed=variant.marker_seed)
+        if variant.youngs_modulus_mpa is not None:
+            gel = setup.sensor.gel.model_copy(update={"youngs_modulus_mpa": variant.youngs_modulus_mpa})
+            setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, gel=gel))
+    out = scene.outputs
+    renderer = None
+    records: list[dict] = []
+    stages = {"setup"}
+    try:
+        for phys in simulate_frames(setup, limit, clock):
+            f = phys.frame
+            if f not in todo:
+                records.append({"sequence": seq, "frame": f, "status": "done", "skipped": True})
+                continue
+            images, depth, views = {}, {}, {}
+            if out.illuminations or out.aovs or out.labels:
+                from transtac_sim.dataset.render_stage import FrameRenderer
+
+                if renderer is None:
+                    with clock("render_setup"):
+                        renderer = FrameRenderer(setup, variant, clock)
+                images, depth, views = renderer.render(phys)
+            labels = frame_labels(seq, f, f / out.frame_rate_hz, setup, phys, views)
+            with clock("write"):
+                write_frame(root, FrameOutput(seq, f, labels, images, depth))
+            records.append({"sequence": seq, "frame": f, "status": "done"})
+    except SimulationFailed as e:
+        done = {r["frame"] for r in records}
+        records += [{"sequence": seq, "frame": f, "status": "failed", "reason": str(e) if f == e.frame else
+                     f"not simulated: frame {e.frame} of this sequence failed"} for f in range(limit) if f not in done]
+    stages |= set(clock.seconds)
+    if records:
+        records[0]["timings"] = clock.seconds
+        records[0]["stages"] = sorted(stages)
+    return records
+
+
+def frame_labels(seq: str, frame: int, time_s: float, setup, phys, views: dict) -> dict:
+    """``labels.json`` of DESIGN.md section 4: 3D in the left camera's frame (mm), 2D per camera."""
+    sensor = setup.sensor
+    rest = sensor.gel_to_left(sensor.markers_rest_gel_mm)
+    now = sensor.gel_to_left(phys.markers_gel_mm)
+    to_left = np.eye(4)
+    to_left[:3, 3] = sensor.gel_origin_in_left_mm
+    markers = []
+    for i in range(len(rest)):
+        m = {"id": i, "xyz_rest_mm": rest[i].tolist(), "xyz_mm": now[i].tolist()}
+        for cam, v in views.items():
+            m[cam] = {k: (val[i].tolist() if val[i] is not None else None) if k != "visible" else bool(val[i])
+                      for k, val in v.items()}
+        markers.append(m)
+    return {
+        "sequence": seq, "frame": frame, "time_s": time_s,
+        "indenters": [{"name": ind.config.name, "pose_mm": (to_left @ pose).tolist(),
+                       "force_n": force.tolist(), "depth_mm": depth}
+                      for ind, pose, force, depth in zip(setup.indenters, phys.indenter_poses, phys.forces_n,
+                                                         phys.depths_mm, strict=True)],
+        "solver": phys.solver,
+        "markers": markers,
+    }
