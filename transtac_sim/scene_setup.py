@@ -4,7 +4,7 @@ followed and checked, so that a bad file fails here with its name, before any so
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +46,8 @@ def build_setup(scene: Scene, path: Path, *, marker_seed: int | None = None) -> 
     the marker layout's seed (domain randomisation)."""
     sensor = build_sensor(scene.sensor.hardware, scene.sensor.markers, layout_source=path, relative_to=path.parent,
                           marker_seed=marker_seed)
+    if not scene.render.distortion:  # the recorded images are ideal pinhole images: say so in the calibration
+        sensor = replace(sensor, cameras={k: replace(c, dist=np.zeros_like(c.dist)) for k, c in sensor.cameras.items()})
     placed = []
     for i, cfg in enumerate(scene.indenters):
         key = f"indenters[{i}]"

@@ -26,7 +26,8 @@ class SimulationFailed(RuntimeError):
 class PhysicsFrame:
     frame: int
     markers_gel_mm: np.ndarray  # (K, 3) marker centres, gel frame
-    surface_vertices_gel_mm: np.ndarray | None  # deformed gel vertices (gel frame); None = rest box
+    surface_vertices_gel_mm: np.ndarray | None  # deformed gel mesh vertices (gel frame); None = rest box
+    rest_vertices_gel_mm: np.ndarray | None  # the same vertices at rest
     surface_faces: np.ndarray | None  # (F, 3) boundary triangles of the gel mesh, outward
     indenter_poses: list[np.ndarray]  # 4x4 per indenter, indenter frame -> gel frame
     forces_n: list[np.ndarray]  # (3,) force of each indenter on the gel, N
@@ -46,7 +47,7 @@ def simulate_frames(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
     """``frames`` physics frames of ``setup``, in order (each warm-starts from the last)."""
     if not setup.has_contact:
         for f in range(frames):
-            yield PhysicsFrame(f, setup.sensor.markers_rest_gel_mm, None, None, [], [], [], dict(REST_SOLVER))
+            yield PhysicsFrame(f, setup.sensor.markers_rest_gel_mm, None, None, None, [], [], [], dict(REST_SOLVER))
         return
     from transtac_sim.physics.scene_adapter import solve_scene
 

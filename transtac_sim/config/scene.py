@@ -56,6 +56,21 @@ class Outputs(_Strict):
     labels: bool = True
     frame_rate_hz: float = Field(default=30.0, gt=0.0, le=10_000.0, description="time_s of frame i is i / rate")
 
+class Render(_Strict):
+    """Render and camera-model settings. Exposures map linear radiance (mW/(mm^2 sr)) to full scale."""
+
+    spp: int = Field(default=16, ge=1, le=65536)
+    max_depth: int = Field(default=10, ge=2, le=64)
+    variant: str | None = Field(default=None, description="Mitsuba variant; default cuda_ad_rgb if a GPU, else llvm_ad_rgb")
+    exposure_uv: float = Field(default=60.0, gt=0.0, le=1e6)
+    exposure_white: float = Field(default=12.0, gt=0.0, le=1e6)
+    ambient_white: float = Field(default=0.02, ge=0.0, le=100.0)
+    distortion: bool = True
+    vignetting: float = Field(default=1.0, ge=0.0, le=1.0)
+    noise: bool = True
+    quantize: bool = True
+
+
 class Scene(_Strict):
     name: str = Field(min_length=1)
     seed: int = Field(default=0, ge=0)
@@ -64,6 +79,7 @@ class Scene(_Strict):
     mesh: Mesh = Mesh()
     indenters: list[Indenter] = Field(default_factory=list)
     outputs: Outputs = Outputs()
+    render: Render = Render()
     randomize: Randomize | None = None
 
     @model_validator(mode="after")

@@ -72,8 +72,8 @@ def run_sequence(task) -> list[dict]:
 
                 if renderer is None:
                     with clock("render_setup"):
-                        renderer = FrameRenderer(setup, variant, clock)
-                images, depth, views = renderer.render(phys)
+                        renderer = FrameRenderer(setup, variant, clock, phys.rest_vertices_gel_mm, phys.surface_faces)
+                images, depth, views = renderer.render(phys, seed=frame_seed(scene.seed, task.index, f))
             labels = frame_labels(seq, f, f / out.frame_rate_hz, setup, phys, views)
             with clock("write"):
                 write_frame(root, FrameOutput(seq, f, labels, images, depth))
@@ -87,6 +87,11 @@ def run_sequence(task) -> list[dict]:
         records[0]["timings"] = clock.seconds
         records[0]["stages"] = sorted(stages)
     return records
+
+
+def frame_seed(scene_seed: int, sequence: int, frame: int) -> int:
+    """The render and sensor-noise seed of one frame: independent of run order and worker count."""
+    return int(np.random.default_rng([scene_seed, sequence, frame]).integers(2**31))
 
 
 def frame_labels(seq: str, frame: int, time_s: float, setup, phys, views: dict) -> dict:

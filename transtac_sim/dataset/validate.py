@@ -11,7 +11,7 @@ from transtac_sim.dataset import contract
 
 CALIBRATION_KEYS = {"image_size", "K_left", "dist_left", "K_right", "dist_right", "R", "T", "model"}
 LABEL_KEYS = {"sequence", "frame", "time_s", "indenters", "solver", "markers"}
-MARKER_KEYS = {"id", "xyz_rest_mm", "xyz_mm", "left", "right"}
+MARKER_KEYS = {"id", "xyz_rest_mm", "xyz_mm"}
 VIEW_KEYS = {"uv", "uv_centroid", "visible", "bbox"}
 
 
@@ -63,7 +63,7 @@ def validate_dataset(root: Path) -> list[str]:
         if ids_of_sequence.setdefault(seq, set(ids)) != set(ids):
             problems.append(f"{where}/labels.json: marker ids differ from earlier frames of {seq}")
         for m in labels["markers"]:
-            if missing := MARKER_KEYS - set(m):
+            if missing := (MARKER_KEYS | set(outputs["cameras"])) - set(m):
                 problems.append(f"{where}/labels.json: marker {m.get('id')} lacks {sorted(missing)}")
                 continue
             for cam in outputs["cameras"]:
