@@ -14,7 +14,7 @@ runner = CliRunner()
 
 def test_mesh_writes_mesh_markers_summary_and_picture(tmp_path):
     out = tmp_path / "mesh"
-    r = runner.invoke(app, ["mesh", str(REPO / "scenes/quickstart.toml"), "--out", str(out)])
+    r = runner.invoke(app, ["mesh", str(REPO / "scenes/press_slide.toml"), "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "tets" in r.output and "min dihedral" in r.output and "s total" in r.output
     summary = json.loads((out / "summary.json").read_text())
@@ -25,8 +25,8 @@ def test_mesh_writes_mesh_markers_summary_and_picture(tmp_path):
 
 
 def test_info_and_bad_config_exit_code(repo_copy):
-    r = runner.invoke(app, ["info", str(REPO / "scenes/quickstart.toml")])
+    r = runner.invoke(app, ["info", str(REPO / "scenes/press_slide.toml")])
     assert r.exit_code == 0 and "110 x r = 0.25 mm" in r.output
-    bad = edit(repo_copy / "scenes/quickstart.toml", "friction = 0.5", "friction = -1")
+    bad = edit(repo_copy / "scenes/press_slide.toml", "friction = 0.5", "friction = -1")
     r = runner.invoke(app, ["info", str(bad)])
     assert r.exit_code == 2 and "indenters[0].friction" in r.output

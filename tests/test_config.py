@@ -48,7 +48,7 @@ def test_unknown_key_and_wrong_type(repo_copy: Path):
 
 
 def test_malformed_toml_names_the_file(repo_copy: Path):
-    p = repo_copy / "scenes/quickstart.toml"
+    p = repo_copy / "scenes/press_slide.toml"
     p.write_text(p.read_text() + "\n[mesh\n")
     msg = _error(load_scene, p)
     assert str(p) in msg and "not valid TOML" in msg
@@ -62,7 +62,7 @@ def test_marker_layout_outside_the_gel(repo_copy: Path):
     # a measured layout file with one marker beyond the footprint
     csv = repo_copy / "layout.csv"
     csv.write_text("x_mm,y_mm,depth_mm\n0,0,0.5\n17.0,0,0.5\n")
-    scene = edit(repo_copy / "scenes/quickstart.toml", 'hardware = "transtac"',
+    scene = edit(repo_copy / "scenes/press_slide.toml", 'hardware = "transtac"',
                  f'hardware = "transtac"\nmarkers = {{ layout = "file", path = "{csv}", radius_mm = 0.25 }}')
     msg = _error(load_setup, scene)
     assert str(scene) in msg and "markers[1]" in msg and "outside the gel" in msg and "|x| <= 15.750" in msg
@@ -75,20 +75,20 @@ def test_poisson_disk_that_cannot_fit(repo_copy: Path):
 
 
 def test_indenter_that_starts_inside_the_gel(repo_copy: Path):
-    scene = edit(repo_copy / "scenes/quickstart.toml", "start_gap_mm = 0.3", "start_gap_mm = -1.0")
+    scene = edit(repo_copy / "scenes/press_slide.toml", "start_gap_mm = 0.3", "start_gap_mm = -1.0")
     msg = _error(load_setup, scene)
     assert "indenters[0].start_gap_mm" in msg and "1 mm inside the gel" in msg
 
 
 def test_trajectory_segment_errors(repo_copy: Path):
-    scene = edit(repo_copy / "scenes/quickstart.toml", '{ kind = "press", depth_mm = 1.0, frames = 4 }',
+    scene = edit(repo_copy / "scenes/press_slide.toml", '{ kind = "press", depth_mm = 1.0, frames = 4 }',
                  '{ kind = "press", depth_mm = 1.0, force_n = 2.0, frames = 0 }')
     msg = _error(load_scene, scene)
     assert "indenters[0].trajectory[0].frames: 0 is out of range: allowed >= 1" in msg
 
 
 def test_missing_hardware_model_and_wrong_material_kind(repo_copy: Path):
-    scene = edit(repo_copy / "scenes/quickstart.toml", 'hardware = "transtac"', 'hardware = "no_such_sensor"')
+    scene = edit(repo_copy / "scenes/press_slide.toml", 'hardware = "transtac"', 'hardware = "no_such_sensor"')
     assert "no_such_sensor" in _error(load_setup, scene)
     hw = edit(repo_copy / "hardware_models/transtac.toml", 'material = "solaris"', 'material = "acrylic"')
     msg = _error(build_sensor, hw)

@@ -15,7 +15,7 @@ from transtac_sim.scene_setup import load_setup
 
 @pytest.fixture(scope="module")
 def meshed():
-    setup = load_setup(REPO / "scenes" / "quickstart.toml")
+    setup = load_setup(REPO / "scenes" / "press_slide.toml")
     return setup, mesh_gel(setup, use_cache=False)
 
 
@@ -74,7 +74,7 @@ def test_quality_of_a_regular_tet():
 
 
 def test_cache_is_hit_on_the_second_call():
-    setup = load_setup(REPO / "scenes" / "quickstart.toml")
+    setup = load_setup(REPO / "scenes" / "press_slide.toml")
     first = mesh_gel(setup)
     second = mesh_gel(setup)
     assert not first.cache_hit and second.cache_hit and first.cache_key == second.cache_key

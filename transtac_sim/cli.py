@@ -15,7 +15,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Simulate the TransTac tactile sensor and generate labelled stereo datasets.")
 console = Console()
 
-SceneArg = typer.Argument(..., exists=False, help="scene file, e.g. scenes/quickstart.toml")
+SceneArg = typer.Argument(..., exists=False, help="scene file, e.g. scenes/press_slide.toml")
 
 
 def _load(scene: Path):
@@ -53,8 +53,9 @@ def info(scene: Path = SceneArg) -> None:
     tab.add_row("frames", str(sc.frame_count))
     o = sc.outputs
     tab.add_row("outputs", f"cameras {o.cameras}, illuminations {o.illuminations}, aovs {o.aovs}, labels {o.labels}")
-    tab.add_row("stages", ", ".join(["mesh", "physics" if setup.has_contact else "(no physics: no contact)",
-                                     "render" if o.illuminations or o.aovs else "(no render)"]))
+    tab.add_row("stages", ", ".join(["mesh, physics" if setup.has_contact else "(no mesh or physics: no contact)",
+                                     "render" if o.illuminations or o.aovs else "(no render)",
+                                     "labels" if o.labels else "(no labels)"]))
     console.print(tab)
 
 

@@ -49,6 +49,50 @@ def simulate_frames(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
         for f in range(frames):
             yield PhysicsFrame(f, setup.sensor.markers_rest_gel_mm, None, None, None, [], [], [], dict(REST_SOLVER))
         return
-    from transtac_sim.physics.scene_adapter import solve_scene
+    yield from _solve_with_fem(setup, frames, clock)
 
-    yield from solve_scene(setup, frames, clock)
+
+def _device(name: str) -> str:
+    if name != "auto":
+        return name
+    import warp as wp
+
+    return "cuda" if wp.is_cuda_available() else "cpu"
+
+
+def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFrame]:
+    from transtac_sim.meshing import mesh_gel
+    from transtac_sim.physics import (
+        ElasticMaterial, IndenterStartsInsideGel, QuasiStaticSolver, RigidIndenter, SolverDidNotConverge, SolverSettings,
+    )
+    from transtac_sim.physics.trajectory import simulate_sequence
+
+    with clock("mesh"):
+        meshed = mesh_gel(setup)
+    g, cfg = meshed.mesh, setup.scene.physics
+    gel = setup.sensor.gel
+    with clock("physics_setup"):
+        solver = QuasiStaticSolver(
+            g.vertices_mm, g.tets, ElasticMaterial(gel.youngs_modulus_mpa, gel.poisson_ratio),
+            [RigidIndenter.from_trimesh(i.config.name, i.mesh.mesh, i.config.friction) for i in setup.indenters],
+            settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm), device=_device(cfg.device))
+    faces = g.boundary_faces()
+    thickness = setup.sensor.gel_size_mm[2]
+    sequence = simulate_sequence(solver, [i.start_pose for i in setup.indenters],
+                                 [list(i.config.trajectory) for i in setup.indenters], thickness)
+    for f in range(frames):
+        try:
+            with clock("physics"):
+                res = next(sequence)
+                markers = setup.sensor.markers_rest_gel_mm + solver.displacement_at(
+                    meshed.markers.tet_index, meshed.markers.barycentric)
+        except (SolverDidNotConverge, IndenterStartsInsideGel) as e:
+            raise SimulationFailed(f, str(e)) from None
+        r = res.record
+        poses = [np.asarray(p) for p in res.poses]
+        yield PhysicsFrame(
+            f, markers, g.vertices_mm + res.displacement_mm, g.vertices_mm, faces, poses,
+            [np.asarray(x) for x in res.forces_n], [_depth_below_surface(setup, k, p) for k, p in enumerate(poses)],
+            {"converged": bool(r.converged), "iterations": int(r.iterations), "residual": float(r.residual),
+             "seconds": float(r.seconds), "min_det_f": float(r.min_det_f), "substeps": int(r.substeps)},
+        )

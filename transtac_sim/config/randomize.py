@@ -27,11 +27,10 @@ class Randomize(BaseModel):
     youngs_modulus_mpa: Range | None = None
     light_scale: Range | None = None
     exposure_scale: Range | None = None
-    noise_scale: Range | None = None
 
     @model_validator(mode="after")
     def _valid_ranges(self) -> Randomize:
-        positive = {"youngs_modulus_mpa", "light_scale", "exposure_scale", "noise_scale", "press_depth_mm", "slide_distance_mm"}
+        positive = {"youngs_modulus_mpa", "light_scale", "exposure_scale", "press_depth_mm", "slide_distance_mm"}
         ranges = [(name, getattr(self, name)) for name in type(self).model_fields if name != "start_xy_mm"]
         ranges += [("start_xy_mm", r) for r in (self.start_xy_mm or ())]
         for name, r in ranges:

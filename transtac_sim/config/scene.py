@@ -56,6 +56,14 @@ class Outputs(_Strict):
     labels: bool = True
     frame_rate_hz: float = Field(default=30.0, gt=0.0, le=10_000.0, description="time_s of frame i is i / rate")
 
+class Physics(_Strict):
+    """FEM settings (see transtac_sim.physics): element order, Newton tolerance, device."""
+
+    degree: Literal[1, 2] = Field(default=2, description="1: linear tets (fast, stiffer); 2: quadratic (accurate)")
+    newton_tol_mm: float = Field(default=1e-4, gt=0.0, le=1.0)
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+
+
 class Render(_Strict):
     """Render and camera-model settings. Exposures map linear radiance (mW/(mm^2 sr)) to full scale."""
 
@@ -79,6 +87,7 @@ class Scene(_Strict):
     mesh: Mesh = Mesh()
     indenters: list[Indenter] = Field(default_factory=list)
     outputs: Outputs = Outputs()
+    physics: Physics = Physics()
     render: Render = Render()
     randomize: Randomize | None = None
 

@@ -84,7 +84,8 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
     scene = load_scene(scene_path)
     upd = {k: v for k, v in (("seed", seed), ("sequences", sequences)) if v is not None}
     scene = scene.model_copy(update=upd)
-    limit = min(frames, scene.frame_count) if frames else scene.frame_count
+    # a trajectory has its own length; a contact-free scene repeats its rest state as often as asked
+    limit = (min(frames, scene.frame_count) if scene.indenters else frames) if frames else scene.frame_count
     root = Path(out)
     resolved = json.loads(scene.model_dump_json())
     resolved["frames_per_sequence"] = limit

@@ -22,7 +22,6 @@ class Variant:
     marker_seed: int | None = None  # None: the layout's own seed
     light_scale: float = 1.0
     exposure_scale: float = 1.0
-    noise_scale: float = 1.0
 
 
 def sequence_variant(scene: Scene, index: int) -> Variant:
@@ -66,5 +65,4 @@ def sequence_variant(scene: Scene, index: int) -> Variant:
         marker_seed=int(rng.integers(2**31)) if r.marker_layout_seed else None,
         light_scale=draw(r.light_scale) or 1.0,
         exposure_scale=draw(r.exposure_scale) or 1.0,
-        noise_scale=draw(r.noise_scale) or 1.0,
     )

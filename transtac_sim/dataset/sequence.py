@@ -91,7 +91,7 @@ def run_sequence(task) -> list[dict]:
 
 def frame_seed(scene_seed: int, sequence: int, frame: int) -> int:
     """The render and sensor-noise seed of one frame: independent of run order and worker count."""
-    return int(np.random.default_rng([scene_seed, sequence, frame]).integers(2**31))
+    return int(np.random.default_rng([scene_seed, sequence, frame]).integers(2**26))
 
 
 def frame_labels(seq: str, frame: int, time_s: float, setup, phys, views: dict) -> dict:
@@ -105,8 +105,9 @@ def frame_labels(seq: str, frame: int, time_s: float, setup, phys, views: dict) 
     for i in range(len(rest)):
         m = {"id": i, "xyz_rest_mm": rest[i].tolist(), "xyz_mm": now[i].tolist()}
         for cam, v in views.items():
-            m[cam] = {k: (val[i].tolist() if val[i] is not None else None) if k != "visible" else bool(val[i])
-                      for k, val in v.items()}
+            m[cam] = dict(v[i])
+            if m[cam]["uv_centroid"] is not None:  # measured on a float32 render whose last bits depend on
+                m[cam]["uv_centroid"] = [round(c, 3) for c in m[cam]["uv_centroid"]]  # the threads' order
         markers.append(m)
     return {
         "sequence": seq, "frame": frame, "time_s": time_s,

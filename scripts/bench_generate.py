@@ -1,0 +1,58 @@
+"""Labelled stereo frames per hour of `transtac-sim generate`, and how the time splits over the stages.
+
+    .venv/bin/python scripts/bench_generate.py [--scene scenes/train_random.toml] [--sequences 2] [--frames 4]
+
+Runs the generator into a temporary folder, reads the per-stage seconds from its manifest, and writes a
+table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import typer
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_md import machine_name, update_section  # noqa: E402
+
+from transtac_sim.dataset.generate import generate  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
+         sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
+         workers: int = typer.Option(1, min=1), write: bool = typer.Option(True, help="update BENCHMARKS.md")) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers)
+        wall = time.perf_counter() - t0
+        manifest = json.loads((Path(tmp) / "ds" / "manifest.json").read_text())
+    n = report.frames_done
+    stage_total = sum(report.timings.values())
+    rows = [f"| {k} | {v:.2f} | {v / max(n, 1):.3f} | {100 * v / stage_total:.0f} % |" for k, v in
+            sorted(report.timings.items(), key=lambda kv: -kv[1])]
+    md = "\n".join([
+        f"`{' '.join(['python'] + sys.argv)}` on {machine_name()} ({platform.python_version()}, "
+        f"Mitsuba variant {manifest['scene']['render']['variant'] or 'auto'}), {time.strftime('%Y-%m-%d')}:",
+        "",
+        f"{n} labelled stereo frames ({len(manifest['scene']['outputs']['cameras'])} cameras x "
+        f"{', '.join(manifest['scene']['outputs']['illuminations'])}) in {wall:.1f} s wall: "
+        f"**{3600 * n / wall:.0f} frames per hour** ({len(report.frames_failed)} failed).",
+        "",
+        "| stage | seconds | seconds per frame | share |",
+        "| --- | --- | --- | --- |",
+        *rows,
+    ])
+    print(md)
+    if write:
+        update_section(REPO / "BENCHMARKS.md", "generate", md)
+
+
+if __name__ == "__main__":
+    typer.run(main)

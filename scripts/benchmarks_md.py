@@ -1,0 +1,35 @@
+"""Shared by the benchmark scripts: the machine's name and BENCHMARKS.md sections.
+
+Each script owns one section between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` and replaces only
+that one, so results of different scripts and machines live side by side.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+from pathlib import Path
+
+
+def machine_name(device: str = "cpu") -> str:
+    """``2-core CPU (x86_64)`` or the GPU's name for a CUDA device."""
+    if device.startswith("cuda"):
+        try:
+            import warp as wp
+
+            return f"GPU {wp.get_device(device).name}"
+        except Exception:
+            return "GPU"
+    return f"{os.cpu_count()}-core CPU ({platform.machine()})"
+
+
+def update_section(path: Path, name: str, markdown: str) -> None:
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
+    block = f"{begin}\n{markdown.strip()}\n{end}"
+    if begin in text and end in text:
+        text = re.sub(re.escape(begin) + r".*?" + re.escape(end), lambda _: block, text, flags=re.S)
+    else:
+        text = text.rstrip() + f"\n\n## {name}\n\n{block}\n"
+    path.write_text(text)

@@ -1,0 +1,112 @@
+"""Quasi-static FEM: homogeneous compression (embedded points, force), clear errors, friction."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from transtac_sim.physics import (
+    ElasticMaterial,
+    IndenterStartsInsideGel,
+    QuasiStaticSolver,
+    RigidIndenter,
+    SolverDidNotConverge,
+    SolverSettings,
+)
+from transtac_sim.physics.box_mesh import box_tet_mesh, gel_block
+
+
+def _plate(friction=0.0):
+    return RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)), friction)
+
+
+def _lift(z):
+    P = np.eye(4)
+    P[2, 3] = z
+    return P
+
+
+def _roller_block(w=4.0, t=2.0, n=2):
+    """Box [0,w]^2 x [0,t] with rollers on x=0, y=0, z=0: compression stays homogeneous."""
+    V, T = box_tet_mesh(np.linspace(0, w, n + 1), np.linspace(0, w, n + 1), np.linspace(0, t, n + 1))
+    fixed = np.stack([V[:, 0] < 1e-9, V[:, 1] < 1e-9, V[:, 2] < 1e-9], axis=1)
+    return V, T, fixed
+
+
+@pytest.mark.parametrize("poisson", [0.3, 0.49])
+def test_uniform_compression_matches_neo_hookean(poisson):
+    V, T, fixed = _roller_block()
+    mat = ElasticMaterial(0.5, poisson)
+    solver = QuasiStaticSolver(V, T, mat, [_plate()], fixed=fixed)
+    solver.start([_lift(2.0 + 1.0 + 1e-3)])
+    res = solver.solve_frame([_lift(2.0 + 1.0 - 0.1)])
+    assert res.record.converged and res.record.min_det_f > 0
+
+    s = 1.0 + res.displacement_mm[V[:, 2] > 2.0 - 1e-9, 2].mean() / 2.0  # axial stretch reached
+    assert 0.95 < s < 0.96  # 0.1 mm on 2 mm, less the penalty penetration
+    lam = mat.lame_lambda + mat.mu
+    alpha = 1.0 + mat.mu / lam
+    l2 = (alpha - mat.mu / (lam * s)) / s  # free lateral stretch^2 of stable Neo-Hookean
+    l = np.sqrt(l2)
+    rng = np.random.default_rng(0)
+    tet = rng.integers(0, len(T), 50)
+    bary = rng.dirichlet(np.ones(4), 50)
+    X = np.einsum("kj,kjd->kd", bary, V[T[tet]])
+    expected = X * np.array([l - 1.0, l - 1.0, s - 1.0])
+    got = solver.displacement_at(tet, bary)
+    np.testing.assert_allclose(got, expected, atol=1e-5 * 2.0)
+    nominal = mat.mu * s + lam * (l2 * s - alpha) * l2  # first Piola-Kirchhoff P_zz (MPa)
+    np.testing.assert_allclose(res.forces_n[0, 2], nominal * 16.0, rtol=1e-3)
+    assert abs(res.forces_n[0, 0]) < 1e-6 and abs(res.forces_n[0, 1]) < 1e-6
+
+
+def test_indenter_starting_inside_gel_is_a_clear_error():
+    V, T, fixed = _roller_block()
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()], fixed=fixed)
+    with pytest.raises(IndenterStartsInsideGel, match="'plate' starts 0.5 mm inside"):
+        solver.start([_lift(2.0 + 1.0 - 0.5)])
+
+
+def test_unconvergeable_step_raises_with_context():
+    V, T, fixed = _roller_block()
+    settings = SolverSettings(max_newton_iterations=1, max_substep_halvings=1)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()], settings, fixed=fixed)
+    solver.start([_lift(3.001)])
+    before = solver.nodal_displacement().copy()
+    with pytest.raises(SolverDidNotConverge, match=r"frame 0 \(indenters 'plate'\).*1 sub-step.*2 sub-step"):
+        solver.solve_frame([_lift(2.5)])
+    np.testing.assert_array_equal(solver.nodal_displacement(), before)  # nothing half-solved is kept
+
+
+def _sphere_on_block(friction, poisson=0.45):
+    V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
+    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), friction)
+    return V, QuasiStaticSolver(V, T, ElasticMaterial(0.5, poisson), [sphere])
+
+
+@pytest.mark.skip(reason="unverified: the solver takes minutes per frame on 2 cores; see the issue 3 note")
+@pytest.mark.parametrize("friction", [0.0, 0.5])
+def test_slide_friction_force_and_marker_drag(friction):
+    V, solver = _sphere_on_block(friction)
+    P = _lift(2.0 + 2.0 + 1e-3)
+    solver.start([P])
+    P = _lift(2.0 + 2.0 - 0.3)
+    press = solver.solve_frame([P])
+    normal = -press.forces_n[0, 2]
+    assert normal > 0
+    results = []
+    for k in range(3):
+        P = P.copy()
+        P[0, 3] += 0.15
+        results.append(solver.solve_frame([P]))
+    last = results[-1]
+    assert all(r.record.converged and r.record.min_det_f > 0 for r in results)
+    fx = last.forces_n[0, 0]
+    top = (np.abs(V[:, 2] - 2.0) < 1e-9) & (np.linalg.norm(V[:, :2], axis=1) < 0.3)
+    drag = last.displacement_mm[top, 0].mean()
+    if friction == 0.0:
+        assert abs(fx) < 0.02 * normal
+        assert abs(drag) < 0.02
+    else:
+        # fully sliding after 0.45 mm: tangential force = mu * normal force (Coulomb), markers dragged along
+        np.testing.assert_allclose(fx / -last.forces_n[0, 2], friction, rtol=0.1)
+        assert drag > 0.05

@@ -1,0 +1,1 @@
+"""Exact labels: refracted marker projections, bboxes, visibility, intensity centroids."""

@@ -1,0 +1,24 @@
+"""Quasi-static FEM of the gel (Warp FEM): stable Neo-Hookean P1/P2 tets, rigid mesh indenters with
+penalty contact and smoothed Coulomb friction, Newton with line search and adaptive sub-stepping."""
+
+from transtac_sim.physics.indenter import RigidIndenter
+from transtac_sim.physics.material import ElasticMaterial
+from transtac_sim.physics.solver import (
+    FrameResult,
+    IndenterStartsInsideGel,
+    QuasiStaticSolver,
+    SolverDidNotConverge,
+    SolverRecord,
+    SolverSettings,
+)
+
+__all__ = [
+    "ElasticMaterial",
+    "FrameResult",
+    "IndenterStartsInsideGel",
+    "QuasiStaticSolver",
+    "RigidIndenter",
+    "SolverDidNotConverge",
+    "SolverRecord",
+    "SolverSettings",
+]

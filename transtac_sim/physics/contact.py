@@ -1,0 +1,217 @@
+"""Penalty contact and lagged smoothed Coulomb friction against rigid triangle-mesh indenters.
+
+Rigid indenter i: a watertight mesh in its local frame and a pose T_i (4x4, local -> gel frame, mm).
+At a boundary point of the gel with current position x = X + u(X):
+
+- Normal contact. Let q = T_i^-1 x. If q is inside the mesh (winding number), the penetration is
+  g = |c - q| with c the closest surface point, and n = T_i (c - q)/g (the direction that takes x out of
+  the indenter). Inside a face, g and n are the (float64) distance to the face plane and its normal,
+  which stays accurate for tiny penetrations where the float32 closest point would not. Energy k/2 g^2 per unit area, so the gel feels the traction
+  k g n (MPa). ``k`` (N/mm^3) is the penalty stiffness; at equilibrium the penetration is p/k for a contact
+  pressure p, which the solver checks against a stated tolerance.
+- Friction (Coulomb, coefficient mu_f), on the incremental slip since the previous (sub)step, with the
+  normal pressure lam = k g and the normal n lagged at displacement u_lag (IPC-style):
+      dx  = x - T_i T_i,prev^-1 x_prev   (motion of the gel point relative to the indenter)
+      u_t = (I - n n^T) dx,  y = |u_t|
+      E_f = mu_f lam f0(y),  f0(y) = -y^3/(3 eps^2) + y^2/eps + eps/3 (y < eps), y otherwise,
+  whose derivative f1 = f0' = -y^2/eps^2 + 2y/eps (y < eps), 1 otherwise, gives the traction
+  -mu_f lam f1(y) u_t/y: sticking springs below a slip of ``eps`` (mm), the Coulomb bound above.
+  The Hessian used is mu_f lam f1(y)/y (I - n n^T) (positive semi-definite).
+
+All quantities are integrated over the boundary faces of the gel with a Gauss rule.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+import warp.fem as fem
+
+_f = wp.float64
+
+
+@wp.struct
+class Indenters:
+    mesh: wp.array(dtype=wp.uint64)
+    pose: wp.array(dtype=wp.mat44d)  # local -> gel, current
+    pose_inv: wp.array(dtype=wp.mat44d)  # gel -> local, current
+    relative: wp.array(dtype=wp.mat44d)  # T_cur T_prev^-1: where a point stuck to the indenter moved
+    max_dist: wp.array(dtype=wp.float64)  # bounding radius of each mesh (mm)
+    friction: wp.array(dtype=wp.float64)
+    count: int
+    stiffness: wp.float64  # penalty k (N/mm^3)
+    slip_eps: wp.float64  # friction smoothing (mm)
+
+
+@wp.func
+def _transform(T: wp.mat44d, x: wp.vec3d):
+    return wp.vec3d(
+        T[0, 0] * x[0] + T[0, 1] * x[1] + T[0, 2] * x[2] + T[0, 3],
+        T[1, 0] * x[0] + T[1, 1] * x[1] + T[1, 2] * x[2] + T[1, 3],
+        T[2, 0] * x[0] + T[2, 1] * x[1] + T[2, 2] * x[2] + T[2, 3],
+    )
+
+
+@wp.func
+def _rotate(T: wp.mat44d, x: wp.vec3d):
+    return wp.vec3d(
+        T[0, 0] * x[0] + T[0, 1] * x[1] + T[0, 2] * x[2],
+        T[1, 0] * x[0] + T[1, 1] * x[1] + T[1, 2] * x[2],
+        T[2, 0] * x[0] + T[2, 1] * x[1] + T[2, 2] * x[2],
+    )
+
+
+@wp.func
+def _point(mesh: wp.uint64, face: int, k: int):
+    m = wp.mesh_get(mesh)
+    p = m.points[m.indices[3 * face + k]]
+    return wp.vec3d(_f(p[0]), _f(p[1]), _f(p[2]))
+
+
+@wp.func
+def penetration(ind: Indenters, i: int, x: wp.vec3d):
+    """(g, n): penetration depth (mm, 0 if outside) and push-out direction in the gel frame.
+
+    Inside a face (the usual case) g is the distance to the face plane along its outward normal,
+    computed in float64; near an edge or a vertex of the indenter n points to the closest point."""
+    q = _transform(ind.pose_inv[i], x)
+    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
+    hit = wp.mesh_query_point_sign_winding_number(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
+    g = _f(0.0)
+    n = wp.vec3d(_f(0.0), _f(0.0), _f(1.0))
+    if hit.result:
+        if hit.sign < 0.0:
+            p0 = _point(ind.mesh[i], hit.face, 0)
+            nf = wp.normalize(wp.cross(_point(ind.mesh[i], hit.face, 1) - p0, _point(ind.mesh[i], hit.face, 2) - p0))
+            edge_tol = wp.float32(1.0e-4)
+            if hit.u > edge_tol and hit.v > edge_tol and wp.float32(1.0) - hit.u - hit.v > edge_tol:
+                g = wp.dot(p0 - q, nf)
+                n = _rotate(ind.pose[i], nf)
+            else:
+                cf = wp.mesh_eval_position(ind.mesh[i], hit.face, hit.u, hit.v)
+                d = wp.vec3d(_f(cf[0]), _f(cf[1]), _f(cf[2])) - q
+                g = wp.length(d)
+                if g > _f(1.0e-9):
+                    n = _rotate(ind.pose[i], d / g)
+                else:
+                    n = _rotate(ind.pose[i], nf)
+            g = wp.max(g, _f(0.0))
+    return g, n
+
+
+@wp.func
+def _f0(y: wp.float64, eps: wp.float64):
+    if y < eps:
+        return -y * y * y / (_f(3.0) * eps * eps) + y * y / eps + eps / _f(3.0)
+    return y
+
+
+@wp.func
+def _f1_over_y(y: wp.float64, eps: wp.float64):
+    if y < eps:
+        return -y / (eps * eps) + _f(2.0) / eps
+    return _f(1.0) / y
+
+
+@wp.func
+def tangential_slip(ind: Indenters, i: int, x: wp.vec3d, x_prev: wp.vec3d, n: wp.vec3d):
+    dx = x - _transform(ind.relative[i], x_prev)
+    return dx - wp.dot(dx, n) * n
+
+
+@wp.func
+def traction(ind: Indenters, i: int, x: wp.vec3d, x_prev: wp.vec3d, x_lag: wp.vec3d):
+    """Traction (MPa) that indenter i applies to the gel at a boundary point."""
+    g, n = penetration(ind, i, x)
+    t = ind.stiffness * g * n
+    gl, nl = penetration(ind, i, x_lag)
+    if gl > _f(0.0) and ind.friction[i] > _f(0.0):
+        ut = tangential_slip(ind, i, x, x_prev, nl)
+        t -= ind.friction[i] * ind.stiffness * gl * _f1_over_y(wp.length(ut), ind.slip_eps) * ut
+    return t
+
+
+@fem.integrand
+def contact_energy_form(
+    s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, u_lag: fem.Field, ind: Indenters
+):
+    X = fem.position(domain, s)
+    x = X + u(s)
+    e = _f(0.0)
+    for i in range(ind.count):
+        g, n = penetration(ind, i, x)
+        e += _f(0.5) * ind.stiffness * g * g
+        gl, nl = penetration(ind, i, X + u_lag(s))
+        if gl > _f(0.0) and ind.friction[i] > _f(0.0):
+            ut = tangential_slip(ind, i, x, X + u_prev(s), nl)
+            e += ind.friction[i] * ind.stiffness * gl * _f0(wp.length(ut), ind.slip_eps)
+    return e
+
+
+@fem.integrand
+def contact_gradient_form(
+    s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, u_lag: fem.Field, v: fem.Field, ind: Indenters
+):
+    X = fem.position(domain, s)
+    t = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
+    for i in range(ind.count):
+        t += traction(ind, i, X + u(s), X + u_prev(s), X + u_lag(s))
+    return -wp.dot(t, v(s))
+
+
+@fem.integrand
+def contact_hessian_form(
+    s: fem.Sample,
+    domain: fem.Domain,
+    u: fem.Field,
+    u_prev: fem.Field,
+    u_lag: fem.Field,
+    du: fem.Field,
+    v: fem.Field,
+    ind: Indenters,
+):
+    X = fem.position(domain, s)
+    x = X + u(s)
+    h = _f(0.0)
+    for i in range(ind.count):
+        g, n = penetration(ind, i, x)
+        if g > _f(0.0):
+            h += ind.stiffness * wp.dot(n, du(s)) * wp.dot(n, v(s))
+        gl, nl = penetration(ind, i, X + u_lag(s))
+        if gl > _f(0.0) and ind.friction[i] > _f(0.0):
+            ut = tangential_slip(ind, i, x, X + u_prev(s), nl)
+            c = ind.friction[i] * ind.stiffness * gl * _f1_over_y(wp.length(ut), ind.slip_eps)
+            dut = du(s) - wp.dot(du(s), nl) * nl
+            h += c * wp.dot(dut, v(s))
+    return h
+
+
+@fem.integrand
+def wrench_form(
+    s: fem.Sample,
+    domain: fem.Domain,
+    u: fem.Field,
+    u_prev: fem.Field,
+    u_lag: fem.Field,
+    ind: Indenters,
+    which: int,
+    component: int,
+):
+    """Component 0-2: force, 3-5: torque about the indenter's reference point (pose translation)."""
+    X = fem.position(domain, s)
+    x = X + u(s)
+    t = traction(ind, which, x, X + u_prev(s), X + u_lag(s))
+    if component < 3:
+        return t[component]
+    P = ind.pose[which]
+    r = x - wp.vec3d(P[0, 3], P[1, 3], P[2, 3])
+    return wp.cross(r, t)[component - 3]
+
+
+@fem.integrand
+def penetration_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, ind: Indenters):
+    x = fem.position(domain, s) + u(s)
+    g_max = _f(0.0)
+    for i in range(ind.count):
+        g, n = penetration(ind, i, x)
+        g_max = wp.max(g_max, g)
+    return g_max

@@ -1,0 +1,60 @@
+"""Linear solves for the Newton steps: H du = -g with some degrees of freedom fixed (du = 0 there).
+
+- ``"direct"``: scipy's sparse LU (SuperLU) on the host, on the free rows/columns only. Fastest on the
+  CPU for the mesh sizes used here (see BENCHMARKS.md).
+- ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the
+  GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import warp as wp
+import warp.fem as fem
+from warp.optim.linear import cg, preconditioner
+from warp.sparse import BsrMatrix
+
+
+def bsr_to_scipy(A: BsrMatrix) -> sp.csr_matrix:
+    nnz = int(A.offsets.numpy()[-1])
+    bs = A.block_shape
+    values = A.values.numpy()[:nnz].reshape(nnz, *bs)
+    M = sp.bsr_matrix((values, A.columns.numpy()[:nnz], A.offsets.numpy()), shape=A.shape)
+    return M.tocsr()
+
+
+class LinearSolver:
+    """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
+
+    def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-8, cg_maxiter: int = 20000):
+        if method not in ("direct", "cg"):
+            raise ValueError(f"unknown linear solver {method!r}")
+        self.method = method
+        self.device = device
+        self.cg_tol = cg_tol
+        self.cg_maxiter = cg_maxiter
+        flat = fixed.reshape(-1)
+        self._free = np.flatnonzero(~flat)
+        self._node_count = fixed.shape[0]
+        blocks = np.zeros((fixed.shape[0], 3, 3))
+        blocks[:, [0, 1, 2], [0, 1, 2]] = fixed
+        self._projector = wp.sparse.bsr_diag(wp.array(blocks, dtype=wp.mat33d, device=device))
+        self.last_iterations = 0
+
+    def solve(self, H: BsrMatrix, rhs: wp.array) -> wp.array:
+        """Returns du (wp.array of vec3d on the device)."""
+        if self.method == "direct":
+            A = bsr_to_scipy(H)[self._free][:, self._free].tocsc()
+            b = rhs.numpy().reshape(-1)[self._free]
+            x = np.zeros(3 * self._node_count)
+            x[self._free] = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(b)
+            self.last_iterations = 1
+            return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        fem.project_linear_system(H, rhs, self._projector, normalize_projector=False)
+        x = wp.zeros_like(rhs)
+        M = preconditioner(H, ptype="block_jacobi_direct")
+        iters, err, _ = cg(H, rhs, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
+        self.last_iterations = int(iters)
+        return x

@@ -1,0 +1,470 @@
+"""Quasi-static frames: minimise elastic + contact + friction energy with Newton and a line search.
+
+Each frame moves the indenters from the previous poses to new ones. The solver minimises
+E(u) = E_el(u) + E_contact(u) (see elasticity.py, contact.py) over the displacement u (mm) of a P1 or P2
+tet mesh, with u = 0 on the fixed components (default: every vertex with z <= tol, the bonded face).
+
+Newton: the Hessian (clamped stable Neo-Hookean + penalty + friction) is solved for a step, an Armijo
+back-tracking line search on E accepts it; convergence when the step's largest component is below
+``newton_tol_mm``. Friction lags the normal pressure and tangent plane: after a Newton solve the lag is
+updated and Newton runs again until the largest change of the lagged displacement is below the
+tolerance (``friction_lag_iterations`` at most). A step that does not converge, makes any det F <= 0
+or leaves a penetration above ``penetration_tol_mm`` is retried in halves of the pose increment
+(adaptive load sub-stepping, ``max_substep_halvings``), starting again from the last good state; past
+that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried. Frames are warm
+started from the previous one; nothing half-solved is ever returned.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+import warp.fem as fem
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation, Slerp
+
+from transtac_sim.physics import contact, elasticity
+from transtac_sim.physics.indenter import RigidIndenter
+from transtac_sim.physics.linear import LinearSolver
+from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
+
+
+class SolverDidNotConverge(RuntimeError):
+    """A frame could not be solved even after load sub-stepping."""
+
+
+class IndenterStartsInsideGel(ValueError):
+    """An indenter's start pose already penetrates the undeformed gel."""
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    degree: int = 2  # element order (1: linear tets, 2: quadratic tets)
+    newton_tol_mm: float = 1.0e-5  # converged when max |Newton step| is below this
+    max_newton_iterations: int = 40
+    max_substep_halvings: int = 5  # up to 2**5 sub-steps per frame
+    linear_solver: str = "auto"  # "direct" (scipy, host), "cg" (warp), "auto": direct on cpu, cg on cuda
+    contact_stiffness: float | None = None  # N/mm^3; None: stiffness_factor * max E / surface element size
+    stiffness_factor: float = 100.0
+    penetration_tol_mm: float = 0.02  # stated bound on residual interpenetration at convergence
+    slip_eps_mm: float = 1.0e-3  # friction smoothing: slips below this are elastic sticking
+    friction_lag_iterations: int = 4
+    contact_quadrature_order: int | None = None  # None: 2 * degree
+    fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
+
+
+@dataclass
+class SolverRecord:
+    converged: bool
+    iterations: int
+    residual: float  # |gradient| (N) on the free dofs at the solution
+    min_det_f: float
+    seconds: float
+    substeps: int
+    max_penetration_mm: float = 0.0
+    linear_iterations: int = 0
+
+
+@dataclass
+class FrameResult:
+    displacement_mm: np.ndarray  # (N,3) at the input vertices
+    forces_n: np.ndarray  # (n_indenters, 3) force each indenter applies to the gel (pressing: fz < 0)
+    torques_nmm: np.ndarray  # (n_indenters, 3) about each indenter's reference point (pose origin)
+    record: SolverRecord
+    poses: list = field(default_factory=list)
+
+
+def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
+    P = np.eye(4)
+    P[:3, 3] = (1.0 - t) * A[:3, 3] + t * B[:3, 3]
+    rots = Rotation.from_matrix(np.stack([A[:3, :3], B[:3, :3]]))
+    P[:3, :3] = Slerp([0.0, 1.0], rots)([t]).as_matrix()[0]
+    return P
+
+
+class QuasiStaticSolver:
+    """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
+
+    vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
+    ``material_index`` (M,); ``fixed`` bool (N,) or (N,3) per-vertex (per-component) Dirichlet mask
+    (u = 0), default z <= settings.fixed_z_tol_mm.
+    """
+
+    def __init__(
+        self,
+        vertices_mm: np.ndarray,
+        tets: np.ndarray,
+        materials: ElasticMaterial | list[ElasticMaterial],
+        indenters: list[RigidIndenter],
+        settings: SolverSettings = SolverSettings(),
+        device: str = "cpu",
+        material_index: np.ndarray | None = None,
+        fixed: np.ndarray | None = None,
+    ):
+        self.settings = settings
+        self.device = wp.get_device(device)
+        self.indenters = list(indenters)
+        V = np.ascontiguousarray(vertices_mm, dtype=np.float64)
+        T = np.ascontiguousarray(tets, dtype=np.int32).copy()
+        e = V[T[:, 1:]] - V[T[:, :1]]
+        vol = np.einsum("ij,ij->i", np.cross(e[:, 0], e[:, 1]), e[:, 2])
+        if np.any(np.abs(vol) < 1e-14 * np.max(np.abs(vol))):
+            raise ValueError("tet mesh has degenerate (zero-volume) tets")
+        self._flipped = vol < 0
+        T[self._flipped] = T[self._flipped][:, [0, 2, 1, 3]]
+        self.vertices_mm, self.tets = V, T
+        self._params_np = neo_hookean_parameters(materials, material_index, len(T))
+
+        with wp.ScopedDevice(self.device):
+            self._geo = fem.Tetmesh(wp.array(T, dtype=int), wp.array(V, dtype=wp.vec3d))
+            self._space = fem.make_polynomial_space(self._geo, degree=settings.degree, dtype=wp.vec3d)
+            self._cells = fem.Cells(self._geo)
+            self._sides = fem.BoundarySides(self._geo)
+            self._q_dev = fem.RegularQuadrature(self._cells, order=2 * (settings.degree - 1))
+            self._q_vol = fem.RegularQuadrature(self._cells, order=0)
+            self._q_det = fem.RegularQuadrature(self._cells, order=2)
+            corder = settings.contact_quadrature_order or 2 * settings.degree
+            self._q_contact = fem.RegularQuadrature(self._sides, order=corder)
+            self._params = wp.array(self._params_np, dtype=wp.vec2d)
+            self.u = self._space.make_field()  # current
+            self.u_prev = self._space.make_field()  # start of the current (sub)step
+            self.u_lag = self._space.make_field()  # friction lag
+            self._u_try = self._space.make_field()
+            self._test = fem.make_test(self._space, domain=self._cells)
+            self._trial = fem.make_trial(self._space, domain=self._cells)
+            self._side_test = fem.make_test(self._space, domain=self._sides)
+            self._side_trial = fem.make_trial(self._space, domain=self._sides)
+
+        self._node_of_vertex, fixed_nodes = self._map_nodes(fixed)
+        method = settings.linear_solver
+        if method == "auto":
+            method = "direct" if self.device.is_cpu else "cg"
+        self._linear = LinearSolver(method, fixed_nodes, self.device)
+        self._fixed_nodes = fixed_nodes
+
+        surface = self._top_edge_length()
+        e_max = float(np.max(self._params_np[:, 0]) * 2.0 * 1.5)  # ~ E = 2 mu (1 + nu) <= 3 mu
+        self.contact_stiffness = settings.contact_stiffness or settings.stiffness_factor * e_max / (
+            surface / settings.degree
+        )
+        self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
+        self._poses: list[np.ndarray] | None = None
+        self.frame_index = 0
+
+    # -- set-up helpers -------------------------------------------------------------------------
+    def _map_nodes(self, fixed):
+        V, T = self.vertices_mm, self.tets
+        nodes = self._space.node_positions().numpy()
+        tree = cKDTree(nodes)
+        scale = np.ptp(V, axis=0).max()
+        dist, node_of_vertex = tree.query(V)
+        if np.max(dist) > 1e-9 * scale:
+            raise RuntimeError("could not match mesh vertices to FE nodes")
+        if fixed is None:
+            fixed = V[:, 2] <= self.settings.fixed_z_tol_mm
+        fixed = np.asarray(fixed, dtype=bool)
+        if fixed.ndim == 1:
+            fixed = np.repeat(fixed[:, None], 3, axis=1)
+        if fixed.shape != V.shape:
+            raise ValueError(f"fixed mask must be (N,) or (N,3), got {fixed.shape}")
+        fixed_nodes = np.zeros((len(nodes), 3), dtype=bool)
+        fixed_nodes[node_of_vertex] = fixed
+        if self.settings.degree == 2:
+            edges = np.unique(np.sort(T[:, [0, 1, 0, 2, 0, 3, 1, 2, 1, 3, 2, 3]].reshape(-1, 2), axis=1), axis=0)
+            dist, node_of_edge = tree.query(0.5 * (V[edges[:, 0]] + V[edges[:, 1]]))
+            if np.max(dist) > 1e-9 * scale:
+                raise RuntimeError("could not match mesh edges to FE nodes")
+            fixed_nodes[node_of_edge] = fixed[edges[:, 0]] & fixed[edges[:, 1]]
+        if not fixed_nodes.any():
+            raise ValueError("no fixed degree of freedom: the gel would float freely")
+        return node_of_vertex, fixed_nodes
+
+    def _top_edge_length(self) -> float:
+        V, T = self.vertices_mm, self.tets
+        e = np.linalg.norm(V[T[:, [1, 2, 3, 2, 3, 3]]] - V[T[:, [0, 0, 0, 1, 1, 2]]], axis=2)
+        top = V[T].max(axis=1)[:, 2] >= V[:, 2].max() - 1e-9
+        return float(np.median(e[top] if top.any() else e))
+
+    def _indenter_struct(self, poses, prev_poses) -> contact.Indenters:
+        s = contact.Indenters()
+        dev = self.device
+        s.mesh = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=dev)
+        s.pose = wp.array(np.stack(poses), dtype=wp.mat44d, device=dev)
+        s.pose_inv = wp.array(np.stack([np.linalg.inv(P) for P in poses]), dtype=wp.mat44d, device=dev)
+        rel = [P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses)]
+        s.relative = wp.array(np.stack(rel), dtype=wp.mat44d, device=dev)
+        s.max_dist = wp.array([2.0 * i.bounding_radius_mm + 1.0 for i in self.indenters], dtype=wp.float64, device=dev)
+        s.friction = wp.array([i.friction for i in self.indenters], dtype=wp.float64, device=dev)
+        s.count = len(self.indenters)
+        s.stiffness = self.contact_stiffness
+        s.slip_eps = self.settings.slip_eps_mm
+        return s
+
+    # -- energy, gradient, Hessian ----------------------------------------------------------------
+    def _contact_fields(self, u):
+        return {"u": u.trace(), "u_prev": self.u_prev.trace(), "u_lag": self.u_lag.trace()}
+
+    def _energy(self, u, ind) -> float:
+        vals = {"params": self._params}
+        e = fem.integrate(elasticity.deviatoric_energy_form, quadrature=self._q_dev, fields={"u": u}, values=vals)
+        e += fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals)
+        if ind.count:
+            e += fem.integrate(
+                contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
+                values={"ind": ind},
+            )
+        return float(e)
+
+    def _gradient(self, ind) -> wp.array:
+        vals = {"params": self._params}
+        f = {"u": self.u, "v": self._test}
+        g = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev, fields=f, values=vals,
+                          output_dtype=wp.vec3d)
+        fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
+                      output=g, add=True)
+        if ind.count:
+            fields = self._contact_fields(self.u) | {"v": self._side_test}
+            fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields=fields,
+                          values={"ind": ind}, output=g, add=True)
+        return g
+
+    def _hessian(self, ind, geometric: float):
+        vals = {"params": self._params}
+        f = {"du": self._trial, "v": self._test}
+        H = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f, values=vals,
+                          output_dtype=wp.float64)
+        fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol, fields=f | {"u": self.u},
+                      values=vals | {"geometric": geometric}, output=H, add=True)
+        if ind.count:
+            fields = self._contact_fields(self.u) | {"du": self._side_trial, "v": self._side_test}
+            fem.integrate(contact.contact_hessian_form, quadrature=self._q_contact, fields=fields,
+                          values={"ind": ind}, output=H, add=True)
+        return H
+
+    def _free_norm(self, g: wp.array) -> float:
+        a = g.numpy()
+        a[self._fixed_nodes] = 0.0
+        return float(np.linalg.norm(a))
+
+    # -- Newton -----------------------------------------------------------------------------------
+    def _newton(self, ind) -> tuple[bool, int, str]:
+        tol = self.settings.newton_tol_mm
+        for it in range(1, self.settings.max_newton_iterations + 1):
+            g = self._gradient(ind)
+            g_np = g.numpy()
+            g_np[self._fixed_nodes] = 0.0
+            energy = self._energy(self.u, ind)
+            for geometric in (1.0, 0.0):
+                H = self._hessian(ind, geometric)
+                rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
+                du = self._linear.solve(H, rhs)
+                du_np = du.numpy()
+                slope = float(np.sum(du_np * g_np))
+                if np.all(np.isfinite(du_np)) and slope < 0.0:
+                    break
+            else:
+                return False, it, "Newton direction is not a descent direction"
+            step_max = float(np.max(np.abs(du_np)))
+            if step_max < tol:
+                return True, it, ""
+            alpha = 1.0
+            while alpha > 1e-6:
+                wp.copy(self._u_try.dof_values, self.u.dof_values)
+                fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=alpha)
+                e_try = self._energy(self._u_try, ind)
+                if np.isfinite(e_try) and e_try <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
+                    break
+                alpha *= 0.5
+            else:
+                if step_max < 100.0 * tol:  # energy differences below round-off: accept the tiny step
+                    fem.linalg.array_axpy(x=du, y=self.u.dof_values, alpha=1.0)
+                    return True, it, ""
+                return False, it, "line search failed"
+            wp.copy(self.u.dof_values, self._u_try.dof_values)
+            if alpha * step_max < tol:
+                return True, it, ""
+        return False, self.settings.max_newton_iterations, "Newton iteration limit reached"
+
+    def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str]:
+        ind = self._indenter_struct(poses, prev_poses)
+        wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
+        has_friction = any(i.friction > 0 for i in self.indenters)
+        iterations = 0
+        lags = self.settings.friction_lag_iterations if has_friction else 1
+        for lag in range(lags):
+            ok, it, why = self._newton(ind)
+            iterations += it
+            if not ok:
+                return False, iterations, why
+            change = np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy()))
+            wp.copy(self.u_lag.dof_values, self.u.dof_values)
+            if change < self.settings.newton_tol_mm * 10.0 or lag == lags - 1:
+                break
+        if has_friction:  # final state with the converged lag (no-op if the lag did not change)
+            ok, it, why = self._newton(ind)
+            iterations += it
+            if not ok:
+                return False, iterations, why
+        self._last_ind = ind
+        return True, iterations, ""
+
+    def _min_det(self, u) -> float:
+        J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
+        fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
+        return float(np.min(J.numpy()))
+
+    def _max_penetration(self, ind) -> float:
+        if not ind.count:
+            return 0.0
+        pen = wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device)
+        fem.interpolate(contact.penetration_form, dest=pen, at=self._q_contact, fields={"u": self.u.trace()},
+                        values={"ind": ind})
+        return float(np.max(pen.numpy()))
+
+    # -- public API -------------------------------------------------------------------------------
+    def start(self, poses: list[np.ndarray]) -> None:
+        """Reset to the undeformed gel with the indenters at ``poses``; they must not penetrate it."""
+        poses = self._check_poses(poses)
+        self.u.dof_values.zero_()
+        self.u_prev.dof_values.zero_()
+        self.u_lag.dof_values.zero_()
+        for i in range(len(poses)):
+            one = self._indenter_struct([poses[i]], [poses[i]])
+            one.mesh = wp.array([self._meshes[i].id], dtype=wp.uint64, device=self.device)
+            one.max_dist = wp.array([2.0 * self.indenters[i].bounding_radius_mm + 1.0], dtype=wp.float64,
+                                    device=self.device)
+            depth = self._max_penetration(one)
+            if depth > self.settings.penetration_tol_mm:
+                raise IndenterStartsInsideGel(
+                    f"indenter {self.indenters[i].name!r} starts {depth:.4g} mm inside the undeformed gel "
+                    f"(tolerance {self.settings.penetration_tol_mm} mm); start it above the surface z = "
+                    f"{self.vertices_mm[:, 2].max():.4g} mm"
+                )
+        self._poses = poses
+        self.frame_index = 0
+
+    def _check_poses(self, poses) -> list[np.ndarray]:
+        poses = [np.asarray(P, dtype=np.float64) for P in poses]
+        if len(poses) != len(self.indenters) or any(P.shape != (4, 4) for P in poses):
+            raise ValueError(f"expected {len(self.indenters)} poses of shape (4,4)")
+        return poses
+
+    def solve_frame(self, poses: list[np.ndarray]) -> FrameResult:
+        """Move the indenters to ``poses`` (one 4x4 each) and solve the static equilibrium."""
+        if self._poses is None:
+            raise RuntimeError("call start(initial_poses) before solve_frame")
+        poses = self._check_poses(poses)
+        t0 = time.perf_counter()
+        frame = self.frame_index
+        wp.copy(self.u_prev.dof_values, self.u.dof_values)
+        u_frame_start = wp.clone(self.u.dof_values)
+        tried = []
+        total_iterations = 0
+        for halvings in range(self.settings.max_substep_halvings + 1):
+            n_sub = 2**halvings
+            wp.copy(self.u.dof_values, u_frame_start)
+            ok, why = True, ""
+            prev = self._poses
+            for k in range(1, n_sub + 1):
+                target = [_interpolate_pose(A, B, k / n_sub) for A, B in zip(self._poses, poses)]
+                wp.copy(self.u_prev.dof_values, self.u.dof_values)
+                ok, it, why = self._solve_step(target, prev)
+                total_iterations += it
+                if ok:
+                    min_det = self._min_det(self.u)
+                    pen = self._max_penetration(self._last_ind)
+                    if not np.isfinite(min_det) or min_det <= 0.0:
+                        ok, why = False, f"det F = {min_det:.3g} <= 0 (inverted element)"
+                    elif pen > self.settings.penetration_tol_mm:
+                        ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
+                if not ok:
+                    tried.append(f"{n_sub} sub-step(s): failed in sub-step {k} ({why})")
+                    break
+                prev = target
+            if ok:
+                break
+        if not ok:
+            wp.copy(self.u.dof_values, u_frame_start)
+            names = ", ".join(repr(i.name) for i in self.indenters)
+            raise SolverDidNotConverge(
+                f"frame {frame} (indenters {names}) did not converge; tried: " + "; ".join(tried)
+                + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, max_newton_iterations="
+                f"{self.settings.max_newton_iterations}, contact stiffness {self.contact_stiffness:.4g} N/mm^3"
+            )
+        ind = self._last_ind
+        g = self._gradient(ind)
+        wrench = np.zeros((len(self.indenters), 6))
+        for i in range(len(self.indenters)):
+            for c in range(6):
+                wrench[i, c] = fem.integrate(
+                    contact.wrench_form, quadrature=self._q_contact, fields=self._contact_fields(self.u),
+                    values={"ind": ind, "which": i, "component": c},
+                )
+        record = SolverRecord(
+            converged=True,
+            iterations=total_iterations,
+            residual=self._free_norm(g),
+            min_det_f=min_det,
+            seconds=time.perf_counter() - t0,
+            substeps=n_sub,
+            max_penetration_mm=pen,
+            linear_iterations=self._linear.last_iterations,
+        )
+        self._poses = poses
+        self.frame_index += 1
+        return FrameResult(self.nodal_displacement()[self._node_of_vertex], wrench[:, :3], wrench[:, 3:], record,
+                           poses)
+
+    def snapshot(self):
+        """Opaque copy of the solver state (to try a frame and go back, e.g. press-to-force)."""
+        return wp.clone(self.u.dof_values), [P.copy() for P in self._poses], self.frame_index
+
+    def restore(self, state) -> None:
+        dofs, poses, frame = state
+        wp.copy(self.u.dof_values, dofs)
+        self._poses, self.frame_index = [P.copy() for P in poses], frame
+
+    @property
+    def poses(self) -> list[np.ndarray]:
+        return [P.copy() for P in self._poses]
+
+    def nodal_displacement(self) -> np.ndarray:
+        return self.u.dof_values.numpy()
+
+    def displacement_at(self, tet_index: np.ndarray, barycentric: np.ndarray) -> np.ndarray:
+        """(K,3) displacement at points given by tet index (K,) and barycentric weights (K,4) of the tet's
+        vertices (in the order of ``tets`` as given), exact for the element order used."""
+        tet_index = np.asarray(tet_index, dtype=np.int32)
+        b = np.asarray(barycentric, dtype=np.float64)
+        if b.shape != (len(tet_index), 4):
+            raise ValueError("barycentric must be (K,4)")
+        # tets that were re-oriented had vertices 1 and 2 swapped
+        q = self._q_points(tet_index, b)
+        out = wp.empty(len(tet_index), dtype=wp.vec3d, device=self.device)
+        fem.interpolate(_displacement_form, dest=out, at=q, fields={"u": self.u})
+        return out.numpy()
+
+    def _q_points(self, tet_index, b):
+        coords = np.empty((len(tet_index), 3))
+        given = self._given_order(tet_index)
+        for k in range(3):
+            coords[:, k] = np.take_along_axis(b, given[:, k + 1 : k + 2], axis=1)[:, 0]
+        return fem.PicQuadrature(
+            self._cells,
+            (wp.array(tet_index, dtype=int, device=self.device), wp.array(coords, dtype=wp.vec3d, device=self.device)),
+        )
+
+    def _given_order(self, tet_index):
+        """For each stored tet vertex slot, the slot it had in the input tets."""
+        order = np.tile(np.arange(4), (len(tet_index), 1))
+        flipped = self._flipped[tet_index]
+        order[flipped] = order[flipped][:, [0, 2, 1, 3]]
+        return order
+
+
+@fem.integrand
+def _displacement_form(s: fem.Sample, u: fem.Field):
+    return u(s)
