@@ -71,7 +71,7 @@ def main() -> None:
             lines.append(f"| {h:.3f} | {r['tets']} | {r['dofs']} | {r['s_per_frame']:.3f} | "
                          f"{r['iters_per_frame']:.1f} |")
     print("\n".join(lines))
-    write_section("bench_fem", "\n".join(lines))
+    write_section("bench_fem" + ("_gpu" if args.device.startswith("cuda") else ""), "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -27,19 +27,23 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
-         workers: int = typer.Option(1, min=1), write: bool = typer.Option(True, help="update BENCHMARKS.md")) -> None:
+         workers: int = typer.Option(1, min=1), write: bool = typer.Option(True, help="update BENCHMARKS.md"),
+         section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)")) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers)
         wall = time.perf_counter() - t0
         manifest = json.loads((Path(tmp) / "ds" / "manifest.json").read_text())
+    import mitsuba as mi
+
+    variant = mi.variant()
     n = report.frames_done
     stage_total = sum(report.timings.values())
     rows = [f"| {k} | {v:.2f} | {v / max(n, 1):.3f} | {100 * v / stage_total:.0f} % |" for k, v in
             sorted(report.timings.items(), key=lambda kv: -kv[1])]
     md = "\n".join([
-        f"`{' '.join(['python'] + sys.argv)}` on {machine_name()} ({platform.python_version()}, "
-        f"Mitsuba variant {manifest['scene']['render']['variant'] or 'auto'}), {time.strftime('%Y-%m-%d')}:",
+        f"`{' '.join(['python'] + sys.argv)}` on {machine_name('cuda' if variant.startswith('cuda') else 'cpu')} "
+        f"(Python {platform.python_version()}, Mitsuba variant {variant}), {time.strftime('%Y-%m-%d')}:",
         "",
         f"{n} labelled stereo frames ({len(manifest['scene']['outputs']['cameras'])} cameras x "
         f"{', '.join(manifest['scene']['outputs']['illuminations'])}) in {wall:.1f} s wall: "
@@ -51,7 +55,7 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
     ])
     print(md)
     if write:
-        update_section(REPO / "BENCHMARKS.md", "generate", md)
+        update_section(REPO / "BENCHMARKS.md", section, md)
 
 
 if __name__ == "__main__":
