@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -18,7 +19,8 @@ from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndent
 from transtac_sim.physics.box_mesh import gel_block
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from fem_stability import machine, write_section  # noqa: E402
+from benchmarks_md import machine_name as machine  # noqa: E402
+from benchmarks_md import update_section  # noqa: E402
 
 
 def bench(h_fine: float, device: str, frames: int, degree: int = 2) -> dict:
@@ -71,7 +73,7 @@ def main() -> None:
             lines.append(f"| {h:.3f} | {r['tets']} | {r['dofs']} | {r['s_per_frame']:.3f} | "
                          f"{r['iters_per_frame']:.1f} |")
     print("\n".join(lines))
-    write_section("bench_fem" + ("_gpu" if args.device.startswith("cuda") else ""), "\n".join(lines))
+    update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", "bench_fem" + ("_gpu" if args.device.startswith("cuda") else ""), "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -10,8 +10,6 @@ sub-steps and seconds. Writes a markdown table into BENCHMARKS.md (section fem_s
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -20,7 +18,11 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from transtac_sim.physics import (
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_md import machine_name as machine  # noqa: E402
+from benchmarks_md import update_section
+
+from transtac_sim.physics import (  # noqa: E402
     ElasticMaterial,
     IndenterStartsInsideGel,
     QuasiStaticSolver,
@@ -28,26 +30,9 @@ from transtac_sim.physics import (
     SolverDidNotConverge,
     SolverSettings,
 )
-from transtac_sim.physics.box_mesh import gel_block
+from transtac_sim.physics.box_mesh import gel_block  # noqa: E402
 
 THICKNESS = 5.0
-
-
-def write_section(name: str, body: str, path: Path = Path("BENCHMARKS.md")) -> None:
-    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    block = f"{begin}\n{body.rstrip()}\n{end}"
-    if begin in text and end in text:
-        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    path.write_text(text)
-
-
-def machine(device: str) -> str:
-    if device.startswith("cuda"):
-        return wp.get_device(device).name
-    return f"{os.cpu_count()}-core CPU ({platform.processor() or platform.machine()})"
 
 
 def indenter(kind: str, friction: float) -> RigidIndenter:
@@ -79,7 +64,7 @@ def run_case(case: dict, device: str, quick: bool) -> dict:
     poses = [start.copy() for _ in range(frames)]
     for k, P in enumerate(poses):
         P[2, 3] -= depth * (k + 1) / frames
-    for k in range(case.get("slide_frames", 0)):
+    for _ in range(case.get("slide_frames", 0)):
         P = poses[-1].copy()
         P[0, 3] += 0.5
         poses.append(P)
@@ -132,7 +117,7 @@ def main() -> None:
                 f"{r['substeps']} | {r.get('fz', float('nan')):.4g} | {r['seconds']:.1f} |")
         print(line, flush=True)
         lines.append(line)
-    write_section("fem_stability", "\n".join(lines))
+    update_section(Path("BENCHMARKS.md"), "fem_stability", "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -46,12 +46,12 @@ def test_uniform_compression_matches_neo_hookean(poisson):
     lam = mat.lame_lambda + mat.mu
     alpha = 1.0 + mat.mu / lam
     l2 = (alpha - mat.mu / (lam * s)) / s  # free lateral stretch^2 of stable Neo-Hookean
-    l = np.sqrt(l2)
+    lateral = np.sqrt(l2)
     rng = np.random.default_rng(0)
     tet = rng.integers(0, len(T), 50)
     bary = rng.dirichlet(np.ones(4), 50)
     X = np.einsum("kj,kjd->kd", bary, V[T[tet]])
-    expected = X * np.array([l - 1.0, l - 1.0, s - 1.0])
+    expected = X * np.array([lateral - 1.0, lateral - 1.0, s - 1.0])
     got = solver.displacement_at(tet, bary)
     np.testing.assert_allclose(got, expected, atol=1e-5 * 2.0)
     nominal = mat.mu * s + lam * (l2 * s - alpha) * l2  # first Piola-Kirchhoff P_zz (MPa)
@@ -94,7 +94,7 @@ def test_slide_friction_force_and_marker_drag(friction):
     normal = -press.forces_n[0, 2]
     assert normal > 0
     results = []
-    for k in range(3):
+    for _k in range(3):
         P = P.copy()
         P[0, 3] += 0.15
         results.append(solver.solve_frame([P]))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 import numpy as np
@@ -23,3 +24,53 @@ def test_contact_free_scene_never_calls_the_fem_solver(monkeypatch):
         assert np.array_equal(f.markers_gel_mm, setup.sensor.markers_rest_gel_mm)
         assert f.solver == {"converged": True, "iterations": 0, "residual": 0.0, "seconds": 0.0}
     assert "physics" not in clock.seconds and "mesh" not in clock.seconds
+
+
+def test_uv_only_scene_never_builds_the_white_light_scene(tmp_path):
+    from transtac_sim.dataset.randomize import Variant
+    from transtac_sim.dataset.render_stage import FrameRenderer
+
+    setup = load_setup(REPO / "tests" / "fixtures" / "tiny_rest.toml")
+    scene = setup.scene.model_copy(update={"outputs": setup.scene.outputs.model_copy(
+        update={"illuminations": ["uv"], "cameras": ["left"]})})
+    setup = dataclasses.replace(setup, scene=scene)
+    fr = FrameRenderer(setup, Variant(scene), StageClock())
+    assert list(fr.renderer.assemblies) == ["uv"] and list(fr.renderer.cameras) == ["left"]
+    phys = next(simulate_frames(setup, 1, StageClock()))
+    images, depth, views = fr.render(phys, seed=0)
+    assert list(images) == [("left", "uv")] and depth == {} and list(views) == ["left"]
+
+
+def test_failed_frame_is_recorded_with_its_reason_and_not_written(tmp_path, monkeypatch):
+    import json
+
+    import transtac_sim.simulation as simulation
+    from transtac_sim.dataset.generate import generate
+
+    real = simulation.simulate_frames
+
+    def failing(setup, frames, clock):
+        for f in real(setup, frames, clock):
+            if f.frame == 1:
+                raise simulation.SimulationFailed(1, "Newton did not converge (test)")
+            yield f
+
+    monkeypatch.setattr(simulation, "simulate_frames", failing)
+    report = generate(REPO / "tests" / "fixtures" / "tiny_rest.toml", tmp_path / "ds", frames=3, sequences=1)
+    samples = json.loads((tmp_path / "ds" / "manifest.json").read_text())["samples"]
+    assert [s["status"] for s in samples] == ["done", "failed", "failed"]
+    assert "Newton did not converge (test)" in samples[1]["reason"] and "frame 1 of this sequence failed" in samples[2]["reason"]
+    assert report.frames_done == 1 and len(report.frames_failed) == 2
+    assert not (tmp_path / "ds" / "sequences" / "seq_00000" / "000001").exists()
+
+
+def test_render_command_writes_images_labels_and_contact_sheet(tmp_path):
+    from typer.testing import CliRunner
+
+    from transtac_sim.cli import app
+
+    r = CliRunner().invoke(app, ["render", str(REPO / "tests" / "fixtures" / "tiny_rest.toml"), "--frame", "0",
+                                 "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    for name in ("left_uv.png", "right_white.png", "labels.json", "contact_sheet.png"):
+        assert (tmp_path / name).is_file()

@@ -92,6 +92,48 @@ def mesh(scene: Path = SceneArg,
 
 
 @app.command()
+def render(scene: Path = SceneArg,
+           frame: int = typer.Option(0, "--frame", min=0, help="frame of the scene's sequence to render"),
+           out: Path = typer.Option(None, help="output folder (default out/<scene name>/render/<frame>)")) -> None:
+    """Render one frame (physics of the frames before it included): the asked-for images, labels.json, and
+    a contact sheet with the labels drawn over the images."""
+    import json
+
+    from transtac_sim.dataset.frame_writer import FrameOutput, write_frame_files
+    from transtac_sim.dataset.randomize import sequence_variant
+    from transtac_sim.dataset.render_stage import FrameRenderer
+    from transtac_sim.dataset.sequence import StageClock, frame_labels, frame_seed
+    from transtac_sim.reports.contact_sheet import annotate, save_contact_sheet
+    from transtac_sim.simulation import SimulationFailed, simulate_frames
+
+    setup = _load(scene)
+    sc = setup.scene
+    if setup.has_contact and frame >= sc.frame_count:
+        console.print(f"[bold red]error:[/] --frame {frame}: the trajectory has {sc.frame_count} frames (0..{sc.frame_count - 1})")
+        raise typer.Exit(2)
+    out = out or Path("out") / sc.name / "render" / f"{frame:06d}"
+    clock = StageClock()
+    t0 = time.perf_counter()
+    try:
+        with console.status(f"physics of frames 0..{frame}" if setup.has_contact else "rest state (no contact)"):
+            phys = list(simulate_frames(setup, frame + 1, clock))[-1]
+    except SimulationFailed as e:
+        console.print(f"[bold red]error:[/] {e}")
+        raise typer.Exit(1) from None
+    with console.status("rendering"):
+        renderer = FrameRenderer(setup, sequence_variant(sc, 0), clock, phys.rest_vertices_gel_mm, phys.surface_faces)
+        images, depth, views = renderer.render(phys, seed=frame_seed(sc.seed, 0, frame))
+    labels = frame_labels("render", frame, frame / sc.outputs.frame_rate_hz, setup, phys, views)
+    write_frame_files(out, FrameOutput("render", frame, labels, images, depth))
+    tiles = [(f"{cam} {ill}", annotate(img, labels, cam, scale=1) if views else img) for (cam, ill), img in sorted(images.items())]
+    sheet = save_contact_sheet(tiles, out / "contact_sheet.png", columns=max(1, len(sc.outputs.illuminations))) if tiles else None
+    (out / "timings.json").write_text(json.dumps(clock.seconds, indent=1))
+    console.print(f"[bold]{sc.name}[/] frame {frame}: {len(images)} image(s), {len(labels['markers'])} markers labelled "
+                  f"in {time.perf_counter() - t0:.1f} s ({', '.join(f'{k} {v:.1f} s' for k, v in clock.seconds.items())})")
+    console.print(f"  wrote {out}/ (images, labels.json){', ' + str(sheet) if sheet else ''}")
+
+
+@app.command()
 def generate(scene: Path = SceneArg,
              out: Path = typer.Option(..., "--out", help="dataset folder (created; an unfinished one is resumed)"),
              frames: int = typer.Option(None, min=1, help="frames per sequence (default: the whole trajectory)"),

@@ -63,7 +63,12 @@ def _device(name: str) -> str:
 def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFrame]:
     from transtac_sim.meshing import mesh_gel
     from transtac_sim.physics import (
-        ElasticMaterial, IndenterStartsInsideGel, QuasiStaticSolver, RigidIndenter, SolverDidNotConverge, SolverSettings,
+        ElasticMaterial,
+        IndenterStartsInsideGel,
+        QuasiStaticSolver,
+        RigidIndenter,
+        SolverDidNotConverge,
+        SolverSettings,
     )
     from transtac_sim.physics.trajectory import simulate_sequence
 

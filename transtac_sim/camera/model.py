@@ -124,17 +124,22 @@ class CameraModel:
         """Linear recorded image -> 8-bit (or float in [0, 1] with quantisation off).
 
         electrons = Poisson(linear * exposure * exposure_scale * vignette * full_well) + Normal(0, read_noise);
-        value = gain * electrons / full_well, clipped to [0, 1]; noise seeded by ``seed``."""
+        value = gain * electrons / full_well, clipped to [0, 1]; noise seeded by ``seed``. Where the mean
+        is >= 30 electrons the Poisson draw is replaced by a Gaussian of the same mean and variance (skew
+        below 0.2; twice as fast), below it is exact."""
         e = self.effects
-        x = np.asarray(linear, np.float64) * (e.exposure * exposure_scale)
+        x = np.asarray(linear, np.float32) * np.float32(e.exposure * exposure_scale)
         if self._vignette is not None:
-            v = 1.0 - e.vignetting + e.vignetting * self._vignette
+            v = (1.0 - e.vignetting + e.vignetting * self._vignette).astype(np.float32)
             x = x * (v[..., None] if x.ndim == 3 else v)
-        x = np.clip(x, 0.0, None)
         if e.noise:
             rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-            electrons = rng.poisson(np.minimum(x, 4.0) * e.full_well_electrons).astype(np.float64)
-            electrons += rng.normal(0.0, e.read_noise_electrons, x.shape)
-            x = electrons / e.full_well_electrons
-        x = np.clip(x * e.gain, 0.0, 1.0)
-        return np.round(x * 255.0).astype(np.uint8) if e.quantize else x.astype(np.float32)
+            lam = np.clip(x, 0.0, 4.0) * np.float32(e.full_well_electrons)
+            low = lam < 30.0
+            mean = np.where(low, np.float32(0.0), lam)
+            electrons = mean + np.sqrt(mean + np.float32(e.read_noise_electrons**2)) * rng.standard_normal(
+                lam.shape, dtype=np.float32)
+            electrons[low] += rng.poisson(lam[low])
+            x = electrons * np.float32(1.0 / e.full_well_electrons)
+        x = np.clip(x * np.float32(e.gain), 0.0, 1.0)
+        return np.rint(x * np.float32(255.0)).astype(np.uint8) if e.quantize else x

@@ -47,7 +47,12 @@ def write_exr_depth(path: Path, depth_mm: np.ndarray) -> Path:
 
 
 def write_frame(root: Path, out: FrameOutput) -> Path:
-    d = contract.frame_dir(root, out.sequence, out.frame)
+    """Write ``out`` into its folder of the dataset at ``root``; returns the labels.json path."""
+    return write_frame_files(contract.frame_dir(root, out.sequence, out.frame), out)
+
+
+def write_frame_files(d: Path, out: FrameOutput) -> Path:
+    """Images, depth, then labels.json (last: it marks the frame complete) into folder ``d``."""
     for (cam, ill), rgb in sorted(out.images.items()):
         data = encode_png(rgb)
         atomic_write(d / contract.image_name(cam, ill), lambda f, data=data: f.write(data))

@@ -39,7 +39,7 @@ class StageClock:
 
 def run_sequence(task) -> list[dict]:
     from transtac_sim.scene_setup import build_setup
-    from transtac_sim.simulation import SimulationFailed, simulate_frames
+    from transtac_sim import simulation
 
     resolved = json.loads(task.scene_json)
     limit = resolved.pop("frames_per_sequence")
@@ -61,7 +61,7 @@ def run_sequence(task) -> list[dict]:
     records: list[dict] = []
     stages = {"setup"}
     try:
-        for phys in simulate_frames(setup, limit, clock):
+        for phys in simulation.simulate_frames(setup, limit, clock):
             f = phys.frame
             if f not in todo:
                 records.append({"sequence": seq, "frame": f, "status": "done", "skipped": True})
@@ -78,7 +78,7 @@ def run_sequence(task) -> list[dict]:
             with clock("write"):
                 write_frame(root, FrameOutput(seq, f, labels, images, depth))
             records.append({"sequence": seq, "frame": f, "status": "done"})
-    except SimulationFailed as e:
+    except simulation.SimulationFailed as e:
         done = {r["frame"] for r in records}
         records += [{"sequence": seq, "frame": f, "status": "failed", "reason": str(e) if f == e.frame else
                      f"not simulated: frame {e.frame} of this sequence failed"} for f in range(limit) if f not in done]

@@ -57,21 +57,25 @@ def image_of_points(spec: CameraSpec, stack: PlanarStack, points: np.ndarray) ->
 
 
 def _segments_hit_triangles(p: np.ndarray, q: np.ndarray, tri: np.ndarray, eps: float = 1e-9) -> np.ndarray:
-    """(K,) whether segment p_k -> q_k crosses any triangle of ``tri`` (F, 3, 3) strictly between its ends."""
+    """(K,) whether segment p_k -> q_k crosses any triangle of ``tri`` (F, 3, 3) strictly between its ends
+    (Moller-Trumbore on the segment/triangle pairs whose bounding boxes overlap)."""
+    seg_lo, seg_hi = np.minimum(p, q), np.maximum(p, q)
+    tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
+    k, f = np.nonzero(np.all((tri_lo[None] <= seg_hi[:, None]) & (tri_hi[None] >= seg_lo[:, None]), axis=-1))
+    t0, e1, e2 = tri[f, 0], tri[f, 1] - tri[f, 0], tri[f, 2] - tri[f, 0]
+    d = q[k] - p[k]
+    h = np.cross(d, e2)
+    a = np.einsum("ni,ni->n", h, e1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(np.abs(a) < 1e-15, np.nan, 1.0 / a)
+        s = p[k] - t0
+        u = np.einsum("ni,ni->n", s, h) * inv
+        qv = np.cross(s, e1)
+        v = np.einsum("ni,ni->n", d, qv) * inv
+        t = np.einsum("ni,ni->n", e2, qv) * inv
+        crosses = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > eps) & (t < 1 - eps)
     hit = np.zeros(len(p), bool)
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    for k0 in range(0, len(p), 64):
-        d = (q - p)[k0 : k0 + 64, None, :]
-        h = np.cross(d, e2[None])
-        a = np.einsum("kfi,fi->kf", h, e1)
-        a = np.where(np.abs(a) < 1e-15, np.nan, a)
-        s = p[k0 : k0 + 64, None, :] - tri[None, :, 0]
-        u = np.einsum("kfi,kfi->kf", s, h) / a
-        qv = np.cross(s, e1[None])
-        v = np.einsum("kfi,kfi->kf", d, qv) / a
-        t = np.einsum("fi,kfi->kf", e2, qv) / a
-        with np.errstate(invalid="ignore"):
-            hit[k0 : k0 + 64] = ((u >= 0) & (v >= 0) & (u + v <= 1) & (t > eps) & (t < 1 - eps)).any(axis=1)
+    hit[k[crosses]] = True
     return hit
 
 

@@ -194,7 +194,7 @@ class QuasiStaticSolver:
         s.mesh = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=dev)
         s.pose = wp.array(np.stack(poses), dtype=wp.mat44d, device=dev)
         s.pose_inv = wp.array(np.stack([np.linalg.inv(P) for P in poses]), dtype=wp.mat44d, device=dev)
-        rel = [P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses)]
+        rel = [P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses, strict=False)]
         s.relative = wp.array(np.stack(rel), dtype=wp.mat44d, device=dev)
         s.max_dist = wp.array([2.0 * i.bounding_radius_mm + 1.0 for i in self.indenters], dtype=wp.float64, device=dev)
         s.friction = wp.array([i.friction for i in self.indenters], dtype=wp.float64, device=dev)
@@ -369,7 +369,7 @@ class QuasiStaticSolver:
             ok, why = True, ""
             prev = self._poses
             for k in range(1, n_sub + 1):
-                target = [_interpolate_pose(A, B, k / n_sub) for A, B in zip(self._poses, poses)]
+                target = [_interpolate_pose(A, B, k / n_sub) for A, B in zip(self._poses, poses, strict=False)]
                 wp.copy(self.u_prev.dof_values, self.u.dof_values)
                 ok, it, why = self._solve_step(target, prev)
                 total_iterations += it

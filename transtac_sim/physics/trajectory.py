@@ -102,7 +102,7 @@ def _solve_for_forces(solver: QuasiStaticSolver, poses: list[np.ndarray], target
     which = [i for i, f in enumerate(targets) if f is not None]
     offsets = np.zeros(len(poses))
     history: list[tuple[np.ndarray, np.ndarray]] = []
-    for trial in range(max_trials):
+    for _trial in range(max_trials):
         trial_poses = [_translate(P, [0.0, 0.0, -offsets[i]]) for i, P in enumerate(poses)]
         solver.restore(state)
         result = solver.solve_frame(trial_poses)
@@ -131,7 +131,7 @@ def simulate_sequence(solver: QuasiStaticSolver, start_poses: list[np.ndarray], 
                       max_force_trials: int = 12) -> Iterator[FrameResult]:
     """Runs the indenters' trajectories together (a shorter one holds its last pose) and yields each frame."""
     trajectories = [IndenterTrajectory(ind, P, segs, thickness_mm)
-                    for ind, P, segs in zip(solver.indenters, start_poses, segments_per_indenter)]
+                    for ind, P, segs in zip(solver.indenters, start_poses, segments_per_indenter, strict=False)]
     solver.start(start_poses)
     gens = [t.frames() for t in trajectories]
     last = [np.asarray(P, dtype=np.float64) for P in start_poses]
