@@ -38,8 +38,8 @@ class StageClock:
 
 
 def run_sequence(task) -> list[dict]:
-    from transtac_sim.scene_setup import build_setup
     from transtac_sim import simulation
+    from transtac_sim.scene_setup import build_setup
 
     resolved = json.loads(task.scene_json)
     limit = resolved.pop("frames_per_sequence")
