@@ -14,7 +14,7 @@ import json
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from transtac_sim.config import ConfigError, load_scene
@@ -42,7 +42,6 @@ class GenerateReport:
     coco_images: dict[str, int]
     contact_sheet: Path | None
     seconds: float = 0.0
-    failures: list[str] = field(default_factory=list)
 
 
 def _run_task(task: SequenceTask) -> list[dict]:
