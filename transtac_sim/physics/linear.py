@@ -25,6 +25,23 @@ def bsr_to_scipy(A: BsrMatrix) -> sp.csr_matrix:
     return M.tocsr()
 
 
+def _direct_solve(A: sp.csc_matrix, b: np.ndarray) -> np.ndarray:
+    """Sparse LU of the (symmetric, normally positive definite) free-dof Hessian.
+
+    First without partial pivoting (DiagPivotThresh 0): the symmetric minimum-degree ordering is kept, which
+    for these matrices gives about half the fill and a ~3x faster factorisation than threshold pivoting.
+    If that breaks down (a tiny pivot of an indefinite matrix: non-finite or inaccurate result), the
+    pivoting factorisation is used."""
+    try:
+        x = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0}).solve(b)
+        r = A @ x - b
+        if np.all(np.isfinite(x)) and np.linalg.norm(r) <= 1.0e-8 * max(np.linalg.norm(b), 1e-300):
+            return x
+    except RuntimeError:  # exactly singular pivot
+        pass
+    return spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(b)
+
+
 class LinearSolver:
     """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
 
@@ -43,15 +60,24 @@ class LinearSolver:
         self._projector = wp.sparse.bsr_diag(wp.array(blocks, dtype=wp.mat33d, device=device))
         self.last_iterations = 0
 
-    def solve(self, H: BsrMatrix, rhs: wp.array) -> wp.array:
-        """Returns du (wp.array of vec3d on the device)."""
+    def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array) -> wp.array:
+        """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed."""
+        parts = H if isinstance(H, (list, tuple)) else [H]
         if self.method == "direct":
-            A = bsr_to_scipy(H)[self._free][:, self._free].tocsc()
+            A = bsr_to_scipy(parts[0])
+            for P in parts[1:]:
+                A = A + bsr_to_scipy(P)
+            A = A[self._free][:, self._free].tocsc()
             b = rhs.numpy().reshape(-1)[self._free]
             x = np.zeros(3 * self._node_count)
-            x[self._free] = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(b)
+            x[self._free] = _direct_solve(A, b)
             self.last_iterations = 1
             return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        H = parts[0]
+        if len(parts) > 1:
+            H = wp.sparse.bsr_copy(H)
+            for P in parts[1:]:
+                wp.sparse.bsr_axpy(P, H)
         fem.project_linear_system(H, rhs, self._projector, normalize_projector=False)
         x = wp.zeros_like(rhs)
         M = preconditioner(H, ptype="block_jacobi_direct")

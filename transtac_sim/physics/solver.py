@@ -232,17 +232,23 @@ class QuasiStaticSolver:
         return g
 
     def _hessian(self, ind, geometric: float):
+        """The Hessian as a list of BSR matrices whose sum it is (the linear solver adds them up).
+
+        The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and reused."""
         vals = {"params": self._params}
         f = {"du": self._trial, "v": self._test}
-        H = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f, values=vals,
-                          output_dtype=wp.float64)
-        fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol, fields=f | {"u": self.u},
-                      values=vals | {"geometric": geometric}, output=H, add=True)
+        if getattr(self, "_H_dev", None) is None:
+            self._H_dev = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f,
+                                        values=vals, output_dtype=wp.float64)
+        parts = [self._H_dev]
+        parts.append(fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol,
+                                   fields=f | {"u": self.u}, values=vals | {"geometric": geometric},
+                                   output_dtype=wp.float64))
         if ind.count:
             fields = self._contact_fields(self.u) | {"du": self._side_trial, "v": self._side_test}
-            fem.integrate(contact.contact_hessian_form, quadrature=self._q_contact, fields=fields,
-                          values={"ind": ind}, output=H, add=True)
-        return H
+            parts.append(fem.integrate(contact.contact_hessian_form, quadrature=self._q_contact, fields=fields,
+                                       values={"ind": ind}, output_dtype=wp.float64))
+        return parts
 
     def _free_norm(self, g: wp.array) -> float:
         a = g.numpy()
