@@ -83,7 +83,6 @@ def _sphere_on_block(friction, poisson=0.45):
     return V, QuasiStaticSolver(V, T, ElasticMaterial(0.5, poisson), [sphere])
 
 
-@pytest.mark.skip(reason="unverified: the solver takes minutes per frame on 2 cores; see the issue 3 note")
 @pytest.mark.parametrize("friction", [0.0, 0.5])
 def test_slide_friction_force_and_marker_drag(friction):
     V, solver = _sphere_on_block(friction)
@@ -105,7 +104,13 @@ def test_slide_friction_force_and_marker_drag(friction):
     drag = last.displacement_mm[top, 0].mean()
     if friction == 0.0:
         assert abs(fx) < 0.02 * normal
-        assert abs(drag) < 0.02
+        # frictionless elasticity is path independent: sliding there equals pressing there directly
+        _, direct = _sphere_on_block(0.0)
+        start = P.copy()
+        start[2, 3] = 2.0 + 2.0 + 1e-3
+        direct.start([start])
+        ref = direct.solve_frame([P]).displacement_mm
+        np.testing.assert_allclose(last.displacement_mm, ref, atol=0.02 * np.abs(ref).max())
     else:
         # fully sliding after 0.45 mm: tangential force = mu * normal force (Coulomb), markers dragged along
         np.testing.assert_allclose(fx / -last.forces_n[0, 2], friction, rtol=0.1)

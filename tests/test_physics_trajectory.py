@@ -48,7 +48,6 @@ def test_press_slide_rotate_roll_release_poses():
     turn = poses[10][:3, :3] @ poses[8][:3, :3].T
     np.testing.assert_allclose(turn @ [0, 0, 1], [np.sin(np.pi / radius), 0, np.cos(np.pi / radius)], atol=1e-9)
     np.testing.assert_allclose(poses[11][:3, 3], start[:3, 3], atol=1e-12)  # back to the press start
-@pytest.mark.skip(reason="unverified: the solver takes minutes per frame on 2 cores; see the issue 3 note")
 def test_press_to_force_reaches_target():
     V, T = gel_block(8.0, 8.0, 2.0, h_fine=0.6, fine_half_width=1.5, growth=1.8)
     ind = _sphere()

@@ -16,9 +16,11 @@ At a boundary point of the gel with current position x = X + u(X):
       E_f = mu_f lam f0(y),  f0(y) = -y^3/(3 eps^2) + y^2/eps + eps/3 (y < eps), y otherwise,
   whose derivative f1 = f0' = -y^2/eps^2 + 2y/eps (y < eps), 1 otherwise, gives the traction
   -mu_f lam f1(y) u_t/y: sticking springs below a slip of ``eps`` (mm), the Coulomb bound above.
-  The Hessian used is mu_f lam f1(y)/y (I - n n^T) (positive semi-definite).
+  Its Hessian (exact for the lagged lam and n, positive semi-definite since f1' >= 0 and f1/y >= 0) is
+      mu_f lam [ f1(y)/y (I - n n^T) + (f1'(y) - f1(y)/y) t t^T ],   t = u_t / y.
 
-All quantities are integrated over the boundary faces of the gel with a Gauss rule.
+All quantities are integrated over the boundary faces of the gel with a Gauss rule. The lagged quantities and
+the current traction and stiffnesses are stored per quadrature point (``ContactState``) before assembly.
 """
 
 from __future__ import annotations
@@ -113,26 +115,89 @@ def _f1_over_y(y: wp.float64, eps: wp.float64):
 
 
 @wp.func
+def _df1(y: wp.float64, eps: wp.float64):
+    if y < eps:
+        return _f(2.0) / eps - _f(2.0) * y / (eps * eps)
+    return _f(0.0)
+
+
+@wp.func
 def tangential_slip(ind: Indenters, i: int, x: wp.vec3d, x_prev: wp.vec3d, n: wp.vec3d):
     dx = x - _transform(ind.relative[i], x_prev)
     return dx - wp.dot(dx, n) * n
 
 
+@wp.struct
+class ContactState:
+    """Per contact quadrature point q and indenter i (index q * count + i), so that the assembly of the
+    gradient and Hessian (one integrand call per degree of freedom, or pair of them) makes no mesh query."""
+
+    lag_g: wp.array(dtype=wp.float64)  # penetration at the friction lag u_lag (mm)
+    lag_n: wp.array(dtype=wp.vec3d)  # push-out normal at the lag
+    normal: wp.array(dtype=wp.vec3d)  # current push-out normal
+    k_normal: wp.array(dtype=wp.float64)  # k where in contact, else 0 (N/mm^3)
+    k_slip: wp.array(dtype=wp.float64)  # friction's tangential stiffness mu_f k g_lag f1(y)/y (N/mm^3)
+    k_slip_dir: wp.array(dtype=wp.float64)  # its correction along the slip: mu_f k g_lag (f1' - f1/y)
+    slip_dir: wp.array(dtype=wp.vec3d)  # unit slip direction t
+    traction: wp.array(dtype=wp.vec3d)  # total traction on the gel (MPa), index q
+
+
 @wp.func
-def traction(ind: Indenters, i: int, x: wp.vec3d, x_prev: wp.vec3d, x_lag: wp.vec3d):
-    """Traction (MPa) that indenter i applies to the gel at a boundary point."""
+def traction(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_prev: wp.vec3d):
+    """Traction (MPa) that indenter i applies to the gel at a boundary point (j = q * count + i); also the
+    current normal, normal stiffness, friction stiffness, its correction along the slip and the slip
+    direction there."""
     g, n = penetration(ind, i, x)
     t = ind.stiffness * g * n
-    gl, nl = penetration(ind, i, x_lag)
+    k_n = _f(0.0)
+    if g > _f(0.0):
+        k_n = ind.stiffness
+    k_t = _f(0.0)
+    k_d = _f(0.0)
+    t_dir = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
+    gl = st.lag_g[j]
     if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-        ut = tangential_slip(ind, i, x, x_prev, nl)
-        t -= ind.friction[i] * ind.stiffness * gl * _f1_over_y(wp.length(ut), ind.slip_eps) * ut
-    return t
+        ut = tangential_slip(ind, i, x, x_prev, st.lag_n[j])
+        y = wp.length(ut)
+        c = ind.friction[i] * ind.stiffness * gl
+        k_t = c * _f1_over_y(y, ind.slip_eps)
+        t -= k_t * ut
+        if y > _f(1.0e-12):
+            k_d = c * _df1(y, ind.slip_eps) - k_t
+            t_dir = ut / y
+    return t, n, k_n, k_t, k_d, t_dir
+
+
+@fem.integrand
+def lag_form(s: fem.Sample, domain: fem.Domain, u_lag: fem.Field, ind: Indenters, st: ContactState):
+    """Stores the lagged penetration and normal (friction's normal pressure and tangent plane)."""
+    x = fem.position(domain, s) + u_lag(s)
+    for i in range(ind.count):
+        g, n = penetration(ind, i, x)
+        st.lag_g[s.qp_index * ind.count + i] = g
+        st.lag_n[s.qp_index * ind.count + i] = n
+
+
+@fem.integrand
+def state_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, ind: Indenters, st: ContactState):
+    """Stores traction and stiffnesses at the current displacement u."""
+    X = fem.position(domain, s)
+    t_sum = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
+    for i in range(ind.count):
+        j = s.qp_index * ind.count + i
+        t, n, k_n, k_t, k_d, t_dir = traction(ind, st, i, j, X + u(s), X + u_prev(s))
+        t_sum += t
+        st.normal[j] = n
+        st.k_normal[j] = k_n
+        st.k_slip[j] = k_t
+        st.k_slip_dir[j] = k_d
+        st.slip_dir[j] = t_dir
+    st.traction[s.qp_index] = t_sum
 
 
 @fem.integrand
 def contact_energy_form(
-    s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, u_lag: fem.Field, ind: Indenters
+    s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, ind: Indenters, st: ContactState
 ):
     X = fem.position(domain, s)
     x = X + u(s)
@@ -140,48 +205,29 @@ def contact_energy_form(
     for i in range(ind.count):
         g, n = penetration(ind, i, x)
         e += _f(0.5) * ind.stiffness * g * g
-        gl, nl = penetration(ind, i, X + u_lag(s))
+        gl = st.lag_g[s.qp_index * ind.count + i]
         if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-            ut = tangential_slip(ind, i, x, X + u_prev(s), nl)
+            ut = tangential_slip(ind, i, x, X + u_prev(s), st.lag_n[s.qp_index * ind.count + i])
             e += ind.friction[i] * ind.stiffness * gl * _f0(wp.length(ut), ind.slip_eps)
     return e
 
 
 @fem.integrand
-def contact_gradient_form(
-    s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, u_lag: fem.Field, v: fem.Field, ind: Indenters
-):
-    X = fem.position(domain, s)
-    t = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
-    for i in range(ind.count):
-        t += traction(ind, i, X + u(s), X + u_prev(s), X + u_lag(s))
-    return -wp.dot(t, v(s))
+def contact_gradient_form(s: fem.Sample, v: fem.Field, st: ContactState):
+    return -wp.dot(st.traction[s.qp_index], v(s))
 
 
 @fem.integrand
-def contact_hessian_form(
-    s: fem.Sample,
-    domain: fem.Domain,
-    u: fem.Field,
-    u_prev: fem.Field,
-    u_lag: fem.Field,
-    du: fem.Field,
-    v: fem.Field,
-    ind: Indenters,
-):
-    X = fem.position(domain, s)
-    x = X + u(s)
+def contact_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, ind: Indenters, st: ContactState):
     h = _f(0.0)
     for i in range(ind.count):
-        g, n = penetration(ind, i, x)
-        if g > _f(0.0):
-            h += ind.stiffness * wp.dot(n, du(s)) * wp.dot(n, v(s))
-        gl, nl = penetration(ind, i, X + u_lag(s))
-        if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-            ut = tangential_slip(ind, i, x, X + u_prev(s), nl)
-            c = ind.friction[i] * ind.stiffness * gl * _f1_over_y(wp.length(ut), ind.slip_eps)
-            dut = du(s) - wp.dot(du(s), nl) * nl
-            h += c * wp.dot(dut, v(s))
+        j = s.qp_index * ind.count + i
+        n = st.normal[j]
+        h += st.k_normal[j] * wp.dot(n, du(s)) * wp.dot(n, v(s))
+        nl = st.lag_n[j]
+        dut = du(s) - wp.dot(du(s), nl) * nl
+        h += st.k_slip[j] * wp.dot(dut, v(s))
+        h += st.k_slip_dir[j] * wp.dot(st.slip_dir[j], du(s)) * wp.dot(st.slip_dir[j], v(s))
     return h
 
 
@@ -191,15 +237,15 @@ def wrench_form(
     domain: fem.Domain,
     u: fem.Field,
     u_prev: fem.Field,
-    u_lag: fem.Field,
     ind: Indenters,
+    st: ContactState,
     which: int,
     component: int,
 ):
     """Component 0-2: force, 3-5: torque about the indenter's reference point (pose translation)."""
     X = fem.position(domain, s)
     x = X + u(s)
-    t = traction(ind, which, x, X + u_prev(s), X + u_lag(s))
+    t, n, k_n, k_t, k_d, t_dir = traction(ind, st, which, s.qp_index * ind.count + which, x, X + u_prev(s))
     if component < 3:
         return t[component]
     P = ind.pose[which]

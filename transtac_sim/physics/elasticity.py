@@ -96,9 +96,16 @@ def deviatoric_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, params: 
 
 
 @fem.integrand
-def volumetric_hessian_form(
-    s: fem.Sample, u: fem.Field, du: fem.Field, v: fem.Field, params: wp.array(dtype=wp.vec2d), geometric: wp.float64
+def volumetric_state_form(
+    s: fem.Sample,
+    u: fem.Field,
+    params: wp.array(dtype=wp.vec2d),
+    geometric: wp.float64,
+    F_qp: wp.array(dtype=wp.mat33d),
+    p_qp: wp.array(dtype=wp.float64),
 ):
+    """Stores F and the clamped pressure s_h at each quadrature point, so that the Hessian's assembly (which
+    evaluates its integrand once per pair of degrees of freedom) does not repeat the SVD."""
     F = deformation_gradient(fem.grad(u, s))
     mu = params[s.element_index][0]
     lam = params[s.element_index][1]
@@ -108,11 +115,25 @@ def volumetric_hessian_form(
     V = wp.mat33d()
     wp.svd3(F, U, sig, V)
     bound = mu / wp.max(wp.max(wp.abs(sig[0]), wp.abs(sig[1])), wp.max(wp.abs(sig[2]), _f(1.0e-6)))
-    p_h = geometric * wp.clamp(p, -bound, bound)
+    F_qp[s.qp_index] = F
+    p_qp[s.qp_index] = geometric * wp.clamp(p, -bound, bound)
+
+
+@fem.integrand
+def volumetric_hessian_form(
+    s: fem.Sample,
+    du: fem.Field,
+    v: fem.Field,
+    params: wp.array(dtype=wp.vec2d),
+    F_qp: wp.array(dtype=wp.mat33d),
+    p_qp: wp.array(dtype=wp.float64),
+):
+    F = F_qp[s.qp_index]
     cof = cofactor(F)
     gdu = fem.grad(du, s)
     gv = fem.grad(v, s)
-    return lam * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + p_h * wp.ddot(cofactor_delta(F, gdu), gv)
+    lam = params[s.element_index][1]
+    return lam * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + p_qp[s.qp_index] * wp.ddot(cofactor_delta(F, gdu), gv)
 
 
 @fem.integrand

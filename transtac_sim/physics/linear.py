@@ -1,7 +1,9 @@
 """Linear solves for the Newton steps: H du = -g with some degrees of freedom fixed (du = 0 there).
 
 - ``"direct"``: scipy's sparse LU (SuperLU) on the host, on the free rows/columns only. Fastest on the
-  CPU for the mesh sizes used here (see BENCHMARKS.md).
+  CPU for the mesh sizes used here (see BENCHMARKS.md). The factorisation is kept: later Newton steps are
+  solved by conjugate gradients preconditioned with it (a few iterations while the Hessian has changed
+  little) and the matrix is factorised again only when that does not converge in ``reuse_max_iterations``.
 - ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the
   GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``.
 """
@@ -25,27 +27,29 @@ def bsr_to_scipy(A: BsrMatrix) -> sp.csr_matrix:
     return M.tocsr()
 
 
-def _direct_solve(A: sp.csc_matrix, b: np.ndarray) -> np.ndarray:
+def _factorise(A: sp.csc_matrix):
     """Sparse LU of the (symmetric, normally positive definite) free-dof Hessian.
 
     First without partial pivoting (DiagPivotThresh 0): the symmetric minimum-degree ordering is kept, which
     for these matrices gives about half the fill and a ~3x faster factorisation than threshold pivoting.
     If that breaks down (a tiny pivot of an indefinite matrix: non-finite or inaccurate result), the
-    pivoting factorisation is used."""
+    pivoting factorisation is used. Returns the factorisation (``.solve(b)``)."""
+    b = A @ np.ones(A.shape[0])
     try:
-        x = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0}).solve(b)
-        r = A @ x - b
-        if np.all(np.isfinite(x)) and np.linalg.norm(r) <= 1.0e-8 * max(np.linalg.norm(b), 1e-300):
-            return x
+        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
+        x = lu.solve(b)
+        if np.all(np.isfinite(x)) and np.max(np.abs(x - 1.0)) <= 1.0e-6:
+            return lu
     except RuntimeError:  # exactly singular pivot
         pass
-    return spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(b)
+    return spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
 
 
 class LinearSolver:
     """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
 
-    def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-8, cg_maxiter: int = 20000):
+    def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-8, cg_maxiter: int = 20000,
+                 reuse_max_iterations: int = 20, reuse_rtol: float = 1.0e-6):
         if method not in ("direct", "cg"):
             raise ValueError(f"unknown linear solver {method!r}")
         self.method = method
@@ -59,20 +63,46 @@ class LinearSolver:
         blocks[:, [0, 1, 2], [0, 1, 2]] = fixed
         self._projector = wp.sparse.bsr_diag(wp.array(blocks, dtype=wp.mat33d, device=device))
         self.last_iterations = 0
+        self.reuse_max_iterations = reuse_max_iterations
+        self.reuse_rtol = reuse_rtol
+        self.factorisations = 0
+        self._lu = None
+        self._static: tuple[int, sp.csr_matrix] | None = None
 
     def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array) -> wp.array:
         """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed."""
         parts = H if isinstance(H, (list, tuple)) else [H]
         if self.method == "direct":
-            A = bsr_to_scipy(parts[0])
+            if self._static is None or self._static[0] != id(parts[0]):  # parts[0] is reused: convert it once
+                self._static = (id(parts[0]), bsr_to_scipy(parts[0]))
+            A = self._static[1]
             for P in parts[1:]:
                 A = A + bsr_to_scipy(P)
             A = A[self._free][:, self._free].tocsc()
             b = rhs.numpy().reshape(-1)[self._free]
             x = np.zeros(3 * self._node_count)
-            x[self._free] = _direct_solve(A, b)
-            self.last_iterations = 1
+            x[self._free] = self._solve_free(A, b)
             return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        return self._solve_cg(parts, rhs)
+
+    def _solve_free(self, A: sp.csc_matrix, b: np.ndarray) -> np.ndarray:
+        if self._lu is not None and self._lu.shape == A.shape:
+            count = [0]
+
+            def counter(_):
+                count[0] += 1
+
+            M = spla.LinearOperator(A.shape, matvec=self._lu.solve, dtype=np.float64)
+            x, info = spla.cg(A, b, rtol=self.reuse_rtol, maxiter=self.reuse_max_iterations, M=M, callback=counter)
+            if info == 0 and np.all(np.isfinite(x)):
+                self.last_iterations = count[0]
+                return x
+        self._lu = _factorise(A)
+        self.factorisations += 1
+        self.last_iterations = 1
+        return self._lu.solve(b)
+
+    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array) -> wp.array:
         H = parts[0]
         if len(parts) > 1:
             H = wp.sparse.bsr_copy(H)

@@ -46,11 +46,11 @@ class SolverSettings:
     newton_tol_mm: float = 1.0e-5  # converged when max |Newton step| is below this
     max_newton_iterations: int = 40
     max_substep_halvings: int = 5  # up to 2**5 sub-steps per frame
-    linear_solver: str = "auto"  # "direct" (scipy, host), "cg" (warp), "auto": direct on cpu, cg on cuda
+    linear_solver: str = "direct"  # "direct" (scipy on the host, from either device), "cg" (warp, on the device)
     contact_stiffness: float | None = None  # N/mm^3; None: stiffness_factor * max E / surface element size
     stiffness_factor: float = 100.0
     penetration_tol_mm: float = 0.02  # stated bound on residual interpenetration at convergence
-    slip_eps_mm: float = 1.0e-3  # friction smoothing: slips below this are elastic sticking
+    slip_eps_mm: float = 1.0e-2  # friction smoothing: slips below this are elastic sticking
     friction_lag_iterations: int = 4
     contact_quadrature_order: int | None = None  # None: 2 * degree
     fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
@@ -137,12 +137,19 @@ class QuasiStaticSolver:
             self._trial = fem.make_trial(self._space, domain=self._cells)
             self._side_test = fem.make_test(self._space, domain=self._sides)
             self._side_trial = fem.make_trial(self._space, domain=self._sides)
+            n_vol = self._q_vol.total_point_count()
+            self._F_qp = wp.empty(n_vol, dtype=wp.mat33d)
+            self._p_qp = wp.empty(n_vol, dtype=wp.float64)
+            n_contact = self._q_contact.total_point_count() * len(self.indenters)
+            self._contact_state = contact.ContactState()
+            for name, dtype in (("lag_g", wp.float64), ("lag_n", wp.vec3d), ("normal", wp.vec3d),
+                                ("k_normal", wp.float64), ("k_slip", wp.float64), ("k_slip_dir", wp.float64),
+                                ("slip_dir", wp.vec3d)):
+                setattr(self._contact_state, name, wp.zeros(n_contact, dtype=dtype))
+            self._contact_state.traction = wp.zeros(self._q_contact.total_point_count(), dtype=wp.vec3d)
 
         self._node_of_vertex, fixed_nodes = self._map_nodes(fixed)
-        method = settings.linear_solver
-        if method == "auto":
-            method = "direct" if self.device.is_cpu else "cg"
-        self._linear = LinearSolver(method, fixed_nodes, self.device)
+        self._linear = LinearSolver(settings.linear_solver, fixed_nodes, self.device)
         self._fixed_nodes = fixed_nodes
 
         surface = self._top_edge_length()
@@ -205,7 +212,16 @@ class QuasiStaticSolver:
 
     # -- energy, gradient, Hessian ----------------------------------------------------------------
     def _contact_fields(self, u):
-        return {"u": u.trace(), "u_prev": self.u_prev.trace(), "u_lag": self.u_lag.trace()}
+        return {"u": u.trace(), "u_prev": self.u_prev.trace()}
+
+    def _contact_values(self, ind) -> dict:
+        return {"ind": ind, "st": self._contact_state}
+
+    def _update_lag(self, ind) -> None:
+        """Friction's lagged normal pressure and tangent plane, from u_lag."""
+        if ind.count:
+            fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
+                            values=self._contact_values(ind))
 
     def _energy(self, u, ind) -> float:
         vals = {"params": self._params}
@@ -214,11 +230,12 @@ class QuasiStaticSolver:
         if ind.count:
             e += fem.integrate(
                 contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
-                values={"ind": ind},
+                values=self._contact_values(ind),
             )
         return float(e)
 
     def _gradient(self, ind) -> wp.array:
+        """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""
         vals = {"params": self._params}
         f = {"u": self.u, "v": self._test}
         g = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev, fields=f, values=vals,
@@ -226,9 +243,10 @@ class QuasiStaticSolver:
         fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
                       output=g, add=True)
         if ind.count:
-            fields = self._contact_fields(self.u) | {"v": self._side_test}
-            fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields=fields,
-                          values={"ind": ind}, output=g, add=True)
+            fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
+                            values=self._contact_values(ind))
+            fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
+                          values={"st": self._contact_state}, output=g, add=True)
         return g
 
     def _hessian(self, ind, geometric: float):
@@ -241,13 +259,15 @@ class QuasiStaticSolver:
             self._H_dev = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f,
                                         values=vals, output_dtype=wp.float64)
         parts = [self._H_dev]
-        parts.append(fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol,
-                                   fields=f | {"u": self.u}, values=vals | {"geometric": geometric},
-                                   output_dtype=wp.float64))
+        qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
+        fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
+                        values=vals | qp | {"geometric": geometric})
+        parts.append(fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol, fields=f,
+                                   values=vals | qp, output_dtype=wp.float64))
         if ind.count:
-            fields = self._contact_fields(self.u) | {"du": self._side_trial, "v": self._side_test}
+            fields = {"du": self._side_trial, "v": self._side_test}
             parts.append(fem.integrate(contact.contact_hessian_form, quadrature=self._q_contact, fields=fields,
-                                       values={"ind": ind}, output_dtype=wp.float64))
+                                       values=self._contact_values(ind), output_dtype=wp.float64))
         return parts
 
     def _free_norm(self, g: wp.array) -> float:
@@ -262,6 +282,8 @@ class QuasiStaticSolver:
             g = self._gradient(ind)
             g_np = g.numpy()
             g_np[self._fixed_nodes] = 0.0
+            if not np.any(g_np):  # e.g. nothing touches yet: already at equilibrium
+                return True, it, ""
             energy = self._energy(self.u, ind)
             for geometric in (1.0, 0.0):
                 H = self._hessian(ind, geometric)
@@ -297,6 +319,8 @@ class QuasiStaticSolver:
     def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str]:
         ind = self._indenter_struct(poses, prev_poses)
         wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
+        # first lag: the contact of the last converged state, where it was (with the previous poses)
+        self._update_lag(self._indenter_struct(prev_poses, prev_poses))
         has_friction = any(i.friction > 0 for i in self.indenters)
         iterations = 0
         lags = self.settings.friction_lag_iterations if has_friction else 1
@@ -307,6 +331,7 @@ class QuasiStaticSolver:
                 return False, iterations, why
             change = np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy()))
             wp.copy(self.u_lag.dof_values, self.u.dof_values)
+            self._update_lag(ind)
             if change < self.settings.newton_tol_mm * 10.0 or lag == lags - 1:
                 break
         if has_friction:  # final state with the converged lag (no-op if the lag did not change)
@@ -407,7 +432,7 @@ class QuasiStaticSolver:
             for c in range(6):
                 wrench[i, c] = fem.integrate(
                     contact.wrench_form, quadrature=self._q_contact, fields=self._contact_fields(self.u),
-                    values={"ind": ind, "which": i, "component": c},
+                    values=self._contact_values(ind) | {"which": i, "component": c},
                 )
         record = SolverRecord(
             converged=True,
