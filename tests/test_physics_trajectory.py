@@ -1,7 +1,6 @@
 """Trajectory segments -> poses, and press-to-force through the solver."""
 
 import numpy as np
-import pytest
 import trimesh
 from pydantic import TypeAdapter
 
