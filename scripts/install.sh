@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Installs everything transtac_sim needs on a fresh Debian machine (idempotent):
-#   - system packages: libllvm19 (Mitsuba's CPU variants crash with Debian's default LLVM 15)
+#   - system packages: libllvm19 (Mitsuba's CPU variants crash with Debian's default LLVM 15);
+#     libsuitesparse-dev (CHOLMOD, built into scikit-sparse: the FEM's sparse Cholesky) and OpenBLAS (CHOLMOD's
+#     BLAS; Debian's default reference BLAS makes it ~5x slower)
 #   - a virtual environment at .venv with the package (editable) and its test tools
 # Usage: bash scripts/install.sh
 set -euo pipefail
@@ -8,6 +10,8 @@ cd "$(dirname "$0")/.."
 
 need_apt=()
 ls /usr/lib/x86_64-linux-gnu/libLLVM.so.19* >/dev/null 2>&1 || ls /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 || need_apt+=(libllvm19)
+[ -f /usr/include/suitesparse/cholmod.h ] || need_apt+=(libsuitesparse-dev)
+ls /usr/lib/*/openblas-pthread/libblas.so.3 >/dev/null 2>&1 || need_apt+=(libopenblas0-pthread)
 if [ ${#need_apt[@]} -gt 0 ]; then
   echo "[install] system packages: ${need_apt[*]}"
   if [ "$(id -u)" -eq 0 ]; then sudo=""; elif command -v sudo >/dev/null; then sudo="sudo"; else

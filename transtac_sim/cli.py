@@ -181,6 +181,50 @@ def generate(scene: Path = SceneArg,
 
 
 @app.command()
+def simulate(scene: Path = SceneArg,
+             out: Path = typer.Option(..., "--out", help="output folder (new, empty, or an earlier simulate run of this scene)"),
+             frames: int = typer.Option(None, min=1, help="frames to simulate (default: the whole trajectory)"),
+             overwrite: bool = typer.Option(False, "--overwrite", help="write into a folder that holds other files")) -> None:
+    """Run the physics alone: per frame the deformed gel mesh, marker positions, indenter poses and forces
+    and the solver record, a summary, and a picture of the last frame's displacement field."""
+    from rich.markup import escape
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from transtac_sim.writer.physics_frames import OutputFolderInUse, frame_count, simulate_to_folder
+
+    setup = _load(scene)
+    total = frame_count(setup, frames)
+    if frames and frames > total:
+        console.print(f"note: the trajectory has {total} frames; simulating {total}")
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} frames"),
+                  TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), console=console) as progress:
+        what = "physics" if setup.has_contact else "rest state (no contact)"
+        task = progress.add_task(f"{what} of {setup.scene.name}", total=total, rate="")
+        spent: list[float] = []
+
+        def on_frame(done: int, total: int, seconds: float) -> None:
+            spent.append(seconds)
+            progress.update(task, completed=done, rate=f"{seconds:.1f} s/frame (mean {sum(spent) / len(spent):.1f})")
+
+        try:
+            report = simulate_to_folder(setup, out, frames=frames, overwrite=overwrite, on_frame=on_frame)
+        except OutputFolderInUse as e:
+            console.print(f"[bold red]error:[/] {e}")
+            raise typer.Exit(2) from None
+    if report.failure:
+        k = report.failure["frame"]
+        kept = f"kept frames 0..{k - 1} in {out}" if k else f"no frame written to {out}"
+        console.print("[bold red]error:[/] " + escape(f"{setup.scene.name}: frame {k} failed: {report.failure['message']} "
+                                                     f"({kept}; see summary.json)"), soft_wrap=True)
+        raise typer.Exit(1)
+    console.print(f"[bold]{setup.scene.name}[/]: {report.frames_written} frame(s) in {report.seconds:.1f} s "
+                  f"({', '.join(f'{k} {v:.1f} s' for k, v in report.timings.items())}); max |F| "
+                  f"{report.max_force_n:.3f} N, max marker displacement {report.max_marker_displacement_mm:.4f} mm")
+    console.print(f"  wrote {out}/mesh.npz, frames/000000..{report.frames_written - 1:06d} (.npz, .json), "
+                  f"summary.json, {report.figure.name if report.figure else '(no picture)'}")
+
+
+@app.command()
 def validate(dataset: Path = typer.Argument(..., help="dataset folder")) -> None:
     """Check a dataset against the contract: files present, labels consistent with images and ids."""
     from transtac_sim.dataset.validate import validate_dataset

@@ -88,7 +88,9 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
     for f in range(frames):
         try:
             with clock("physics"):
-                res = next(sequence)
+                res = next(sequence, None)
+                if res is None:
+                    raise SimulationFailed(f, f"the scene's trajectories have only {f} frame(s)")
                 markers = setup.sensor.markers_rest_gel_mm + solver.displacement_at(
                     meshed.markers.tet_index, meshed.markers.barycentric)
         except (SolverDidNotConverge, IndenterStartsInsideGel) as e:
