@@ -1,6 +1,10 @@
 """Quasi-static FEM of the gel (Warp FEM): stable Neo-Hookean P1/P2 tets, rigid mesh indenters with
 penalty contact and smoothed Coulomb friction, Newton with line search and adaptive sub-stepping."""
 
+import os
+
+import warp as wp
+
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.material import ElasticMaterial
 from transtac_sim.physics.solver import (
@@ -11,6 +15,9 @@ from transtac_sim.physics.solver import (
     SolverRecord,
     SolverSettings,
 )
+
+# Warp reports every kernel module it loads; users see that as noise. TRANSTAC_SIM_WARP_VERBOSE=1 keeps it.
+wp.config.quiet = os.environ.get("TRANSTAC_SIM_WARP_VERBOSE", "") != "1"
 
 __all__ = [
     "ElasticMaterial",

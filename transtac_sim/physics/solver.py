@@ -5,8 +5,8 @@ E(u) = E_el(u) + E_contact(u) (see elasticity.py, contact.py) over the displacem
 tet mesh, with u = 0 on the fixed components (default: every vertex with z <= tol, the bonded face).
 
 Newton: the Hessian (clamped stable Neo-Hookean + penalty + friction) is solved for a step, an Armijo
-back-tracking line search on E accepts it; convergence when the step's largest component is below
-``newton_tol_mm``. Friction lags the normal pressure and tangent plane: after a Newton solve the lag is
+back-tracking line search on E accepts it; convergence when the full (undamped) Newton step's largest
+component is below ``newton_tol_mm`` (a step shortened by the line search says nothing about convergence). Friction lags the normal pressure and tangent plane: after a Newton solve the lag is
 updated and Newton runs again until the largest change of the lagged displacement is below the
 tolerance (``friction_lag_iterations`` at most). A step that does not converge, makes any det F <= 0
 or leaves a penetration above ``penetration_tol_mm`` is retried in halves of the pose increment
@@ -312,8 +312,6 @@ class QuasiStaticSolver:
                     return True, it, ""
                 return False, it, "line search failed"
             wp.copy(self.u.dof_values, self._u_try.dof_values)
-            if alpha * step_max < tol:
-                return True, it, ""
         return False, self.settings.max_newton_iterations, "Newton iteration limit reached"
 
     def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str]:
