@@ -1,7 +1,7 @@
 """Seconds per quasi-static FEM frame, on this CPU or a GPU. Writes BENCHMARKS.md (section bench_fem_cpu or
 bench_fem_gpu).
 
-    .venv/bin/python scripts/bench_fem.py [--device cpu|cuda] [--frames N] [--sweep]
+    .venv/bin/python scripts/bench_fem.py [--device cpu|cuda] [--linear-solver auto|direct|cg] [--frames N] [--sweep]
 
 Part 1, the default press-and-slide scene: ``scenes/press_slide.toml`` solved as ``generate`` solves it (its gel
 mesh, the default element order and tolerances, its trajectory: a 4 mm sphere with friction 0.5 pressed 1 mm,
@@ -40,9 +40,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SWEEP_H_MM = (2.5, 1.8, 1.3, 1.0, 0.75, 0.55, 0.4)
 
 
-def scene_frames(device: str, frames: int) -> list[str]:
+def scene_frames(device: str, linear_solver: str, frames: int) -> list[str]:
     setup = load_setup(ROOT / "scenes" / "press_slide.toml")
-    physics = setup.scene.physics.model_copy(update={"device": device})
+    physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": linear_solver})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = StageClock()
     rows = []
@@ -55,7 +55,7 @@ def scene_frames(device: str, frames: int) -> list[str]:
     seconds = [float(r.split("|")[2]) for r in rows]
     head = [
         f"Default press-and-slide scene (`scenes/press_slide.toml`, {tets} tets, P{physics.degree}, "
-        f"newton_tol {physics.newton_tol_mm} mm): mean {np.mean(seconds):.2f} s per frame, "
+        f"newton_tol {physics.newton_tol_mm} mm, {linear_solver} linear solver): mean {np.mean(seconds):.2f} s per frame, "
         f"{np.mean(seconds[1:] or seconds):.2f} s without the first (kernel compilation). Mesh set-up "
         f"{clock.seconds.get('physics_setup', 0.0):.1f} s.",
         "",
@@ -65,11 +65,11 @@ def scene_frames(device: str, frames: int) -> list[str]:
     return head + rows
 
 
-def block_frame_seconds(h: float, degree: int, device: str) -> dict:
+def block_frame_seconds(h: float, degree: int, device: str, linear_solver: str) -> dict:
     V, T = gel_block(20.0, 20.0, 5.0, h_fine=h, fine_half_width=3.0, growth=1.5)
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=4, radius=3.0), 0.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], SolverSettings(degree=degree,
-                                                                                          newton_tol_mm=1e-4), device)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], SolverSettings(
+        degree=degree, newton_tol_mm=1e-4, linear_solver=linear_solver), device)
     P = np.eye(4)
     P[2, 3] = 5.0 + 3.0 + 1e-3
     solver.start([P])
@@ -88,13 +88,13 @@ def block_frame_seconds(h: float, degree: int, device: str) -> dict:
             "s": (time.perf_counter() - t0) / (len(poses) - 1), "iters": iters / (len(poses) - 1)}
 
 
-def sweep(device: str) -> list[str]:
+def sweep(device: str, linear_solver: str) -> list[str]:
     rows = ["| order | h under the sphere (mm) | tets | dofs | s / frame | Newton iterations / frame | >= 10 frames/s |",
             "|---|---|---|---|---|---|---|"]
     finest = {}
     for degree in (1, 2):
         for h in SWEEP_H_MM:
-            r = block_frame_seconds(h, degree, device)
+            r = block_frame_seconds(h, degree, device, linear_solver)
             fast = r["s"] <= 0.1
             if fast:
                 finest[degree] = (h, r["dofs"])
@@ -105,13 +105,15 @@ def sweep(device: str) -> list[str]:
                 break
     verdict = "; ".join(f"P{d}: finest h {h} mm ({n} dofs)" for d, (h, n) in finest.items()) or (
         "no resolution tried reaches 10 frames per second")
-    return [f"Resolution sweep (20 x 20 x 5 mm block, sphere R 3 mm, friction 0.5). 10 frames/s: {verdict}.", "",
+    return [f"Resolution sweep (20 x 20 x 5 mm block, sphere R 3 mm, friction 0.5, {linear_solver} linear solver). 10 frames/s: {verdict}.", "",
             *rows]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--linear-solver", choices=("auto", "direct", "cg"), default="auto",
+                        help="auto: cg on a GPU, direct on the CPU")
     parser.add_argument("--frames", type=int, default=10, help="frames of the press-and-slide scene (0: skip)")
     parser.add_argument("--sweep", action="store_true", help="also the resolution sweep (10 frames/s)")
     parser.add_argument("--out-md", type=Path, default=ROOT / "BENCHMARKS.md")
@@ -120,11 +122,12 @@ def main() -> None:
     lines = [f"Machine: {machine(args.device)}. Command: `.venv/bin/python scripts/bench_fem.py "
              f"{' '.join(sys.argv[1:])}`", ""]
     if args.frames:
-        lines += scene_frames(args.device, args.frames) + [""]
+        lines += scene_frames(args.device, args.linear_solver, args.frames) + [""]
     if args.sweep:
-        lines += sweep(args.device)
+        lines += sweep(args.device, args.linear_solver)
     print("\n".join(lines))
-    section = "bench_fem_gpu" if args.device.startswith("cuda") else "bench_fem_cpu"
+    section = ("bench_fem_gpu" if args.device.startswith("cuda") else "bench_fem_cpu") + (
+        f"_{args.linear_solver}" if args.linear_solver != "auto" else "")
     update_section(args.out_md, section, "\n".join(lines))
 
 

@@ -4,6 +4,10 @@
 
 Runs the generator into a temporary folder, reads the per-stage seconds from its manifest, and writes a
 table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
+
+``--mesh-only`` builds and caches the gel mesh of each of those sequences (their marker layouts differ) and
+stops: for a benchmark machine without fTetWild, carry the cache folder (``TRANSTAC_SIM_CACHE``) there; its
+mesh stage then reads the cache, and the table says so.
 """
 
 from __future__ import annotations
@@ -28,7 +32,14 @@ REPO = Path(__file__).resolve().parents[1]
 def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
          workers: int = typer.Option(1, min=1), write: bool = typer.Option(True, help="update BENCHMARKS.md"),
-         section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)")) -> None:
+         section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),
+         mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes")) -> None:
+    if mesh_only:
+        _mesh_sequences(scene, sequences)
+        return
+    from transtac_sim.meshing.cache import cache_dir
+
+    cached_before = set(cache_dir().glob("*.npz"))
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers)
@@ -52,10 +63,32 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         "| stage | seconds | seconds per frame | share |",
         "| --- | --- | --- | --- |",
         *rows,
+        "",
+        f"Gel meshes: {len(set(cache_dir().glob('*.npz')) - cached_before)} built in this run; the other "
+        "sequences' meshes were read from the mesh cache (the `mesh` stage).",
     ])
+    causes = [f for f in report.frames_failed if not f.get("reason", "").startswith("not simulated")]
+    if causes:
+        md += "\n\nFailed frames (each stops the rest of its sequence, which is recorded as not simulated):\n\n" + "\n".join(
+            f"- {f['sequence']}/{f['frame']:06d}: {f.get('reason', '')}" for f in causes)
     print(md)
     if write:
         update_section(REPO / "BENCHMARKS.md", section, md)
+
+
+def _mesh_sequences(scene_path: Path, sequences: int) -> None:
+    from transtac_sim.config import load_scene
+    from transtac_sim.dataset.randomize import sequence_variant
+    from transtac_sim.meshing import mesh_gel
+    from transtac_sim.meshing.cache import cache_dir
+    from transtac_sim.scene_setup import build_setup
+
+    scene = load_scene(scene_path).model_copy(update={"sequences": sequences})
+    for i in range(sequences):
+        variant = sequence_variant(scene, i)
+        meshed = mesh_gel(build_setup(variant.scene, scene_path.resolve(), marker_seed=variant.marker_seed))
+        print(f"sequence {i}: {meshed.quality.tets} tets, cache {'hit' if meshed.cache_hit else 'stored'} "
+              f"({meshed.cache_key}) in {cache_dir()}")
 
 
 if __name__ == "__main__":

@@ -115,3 +115,38 @@ def test_slide_friction_force_and_marker_drag(friction):
         # fully sliding after 0.45 mm: tangential force = mu * normal force (Coulomb), markers dragged along
         np.testing.assert_allclose(fx / -last.forces_n[0, 2], friction, rtol=0.1)
         assert drag > 0.05
+
+
+def _press_sphere(settings: SolverSettings, depth: float = 0.3):
+    V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
+    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0))
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], settings)
+    solver.start([_lift(4.0 + 1e-3)])
+    return solver, solver.solve_frame([_lift(4.0 - depth)])
+
+
+def test_cg_linear_solver_matches_direct_and_falls_back_when_it_cannot_converge():
+    """The GPU path (Warp CG, here on the CPU) gives the direct solver's frame; a CG that cannot reach its
+    tolerance (1 iteration allowed) hands that system to the direct solver instead of returning a bad step."""
+    _, direct = _press_sphere(SolverSettings(linear_solver="direct", newton_tol_mm=1e-6))
+    cg, by_cg = _press_sphere(SolverSettings(linear_solver="cg", newton_tol_mm=1e-6))
+    scale = np.abs(direct.displacement_mm).max()
+    np.testing.assert_allclose(by_cg.displacement_mm, direct.displacement_mm, atol=1e-5 * scale)
+    np.testing.assert_allclose(by_cg.forces_n, direct.forces_n, rtol=1e-5, atol=1e-9)
+    assert cg._linear.cg_fallbacks == 0
+    cg._linear.cg_maxiter = 1
+    P = _lift(4.0 - 0.35)
+    stalled = cg.solve_frame([P])
+    assert cg._linear.cg_fallbacks > 0 and stalled.record.converged
+
+
+def test_contact_stiffness_is_raised_until_the_penetration_is_within_tolerance():
+    """A penalty 100x too soft leaves ~p/k of penetration: the solver stiffens the contact (and keeps it)
+    until the stated 0.02 mm holds, instead of failing the frame."""
+    soft = SolverSettings(contact_stiffness=1.0)
+    solver, res = _press_sphere(soft)
+    assert res.record.converged and res.record.max_penetration_mm <= soft.penetration_tol_mm
+    assert solver.contact_stiffness > 10.0
+    rigid = SolverSettings(contact_stiffness=1.0, max_stiffness_raises=0, max_substep_halvings=1)
+    with pytest.raises(SolverDidNotConverge, match="penetration"):
+        _press_sphere(rigid)

@@ -67,15 +67,19 @@ def test_white_light_shows_the_indenter_through_the_gel():
     assert not np.isnan(img).any()
 
 
-def test_depth_finds_a_plane_through_the_gel(tmp_path):
-    scene = demo_scene.sensor_scene(size=(64, 48), markers=np.array([[14.0, 10.0, 21.5]]), indenters=[_plate(22.0)])
+@pytest.mark.parametrize("gap_mm", [0.0, 2e-5])
+def test_depth_finds_a_plane_through_the_gel(tmp_path, gap_mm):
+    """The plate touches the gel's surface (z = 22 mm), as an indenter in contact does: at gap 0 or 2e-5 mm
+    (inside Mitsuba's spawn offset, ~1e-4 mm here) the depth is still its near face, not its far one."""
+    scene = demo_scene.sensor_scene(size=(64, 48), markers=np.array([[14.0, 10.0, 21.5]]),
+                                    indenters=[_plate(22.0 + gap_mm)])
     r = Renderer(scene, RenderRequest(illuminations=(), aovs=("depth",)), RenderSettings(spp=1), IDEAL)
     out = r.render()
     for cam, (u, v) in {"left": (32, 24), "right": (12, 24)}.items():
         assert out.depth[cam][v, u] == pytest.approx(22.0, abs=1e-3)
     # moved in place: the plate pushed 1.5 mm into the gel's place (the gel moved with it)
     frame = demo_scene.indented_frame(scene, 0.0)
-    frame.indenter_vertices = [scene.indenters[0].vertices - [0.0, 0.0, 1.5]]
+    frame.indenter_vertices = [scene.indenters[0].vertices - [0.0, 0.0, 1.5 + gap_mm]]
     frame.gel_vertices = demo_scene.dimple(scene.gel.vertices, 1.5, sigma_mm=100.0)
     d = r.render(frame).depth["left"]
     assert d[24, 32] == pytest.approx(20.5, abs=1e-3)

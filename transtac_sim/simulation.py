@@ -80,7 +80,8 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
         solver = QuasiStaticSolver(
             g.vertices_mm, g.tets, ElasticMaterial(gel.youngs_modulus_mpa, gel.poisson_ratio),
             [RigidIndenter.from_trimesh(i.config.name, i.mesh.mesh, i.config.friction) for i in setup.indenters],
-            settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm), device=_device(cfg.device))
+            settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm, linear_solver=cfg.linear_solver),
+            device=_device(cfg.device))
     faces = g.boundary_faces()
     thickness = setup.sensor.gel_size_mm[2]
     sequence = simulate_sequence(solver, [i.start_pose for i in setup.indenters],

@@ -57,11 +57,14 @@ class Outputs(_Strict):
     frame_rate_hz: float = Field(default=30.0, gt=0.0, le=10_000.0, description="time_s of frame i is i / rate")
 
 class Physics(_Strict):
-    """FEM settings (see transtac_sim.physics): element order, Newton tolerance, device."""
+    """FEM settings (see transtac_sim.physics): element order, Newton tolerance, device, linear solver."""
 
     degree: Literal[1, 2] = Field(default=2, description="1: linear tets (fast, stiffer); 2: quadratic (accurate)")
     newton_tol_mm: float = Field(default=1e-4, gt=0.0, le=1.0)
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    linear_solver: Literal["auto", "direct", "cg"] = Field(
+        default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
+        "auto: cg on a GPU, else direct")
 
 
 class Render(_Strict):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from math import pi
+from math import atan, cos, pi, sin
 
 import numpy as np
 import trimesh
@@ -50,11 +50,23 @@ def cube_edge(side_mm: float = 6.0) -> trimesh.Trimesh:
     return _centred(m)
 
 
-def cone(radius_mm: float = 4.0, height_mm: float = 6.0) -> trimesh.Trimesh:
-    """A cone with its tip down."""
-    m = trimesh.creation.cone(radius=radius_mm, height=height_mm, sections=SECTIONS)
-    m.apply_transform(trimesh.transformations.rotation_matrix(pi, [1, 0, 0]))
-    return _centred(m)
+def cone(radius_mm: float = 4.0, height_mm: float = 6.0, tip_radius_mm: float = 0.5) -> trimesh.Trimesh:
+    """A cone (base radius, apex height) with its tip down, the tip rounded by a sphere of ``tip_radius_mm``
+    tangent to the sides (a printed or machined tip is never sharper; a sharp one inverts the elements
+    under it). The solid is shorter than ``height_mm`` by tip_radius / sin(half-angle) - tip_radius."""
+    half_angle = atan(radius_mm / height_mm)
+    t = np.linspace(0.0, 2.0 * pi, SECTIONS, endpoint=False)
+    base = np.column_stack([radius_mm * np.cos(t), radius_mm * np.sin(t), np.full(SECTIONS, height_mm)])
+    tip = trimesh.creation.icosphere(subdivisions=4, radius=tip_radius_mm).vertices
+    tip[:, 2] += tip_radius_mm / sin(half_angle)  # (sharp) apex at the origin, base at z = height_mm: tip down
+    return _centred(trimesh.convex.convex_hull(np.vstack([base, tip])))
+
+
+def _rounded_cone_volume(radius_mm: float, height_mm: float, tip_radius_mm: float) -> float:
+    """The cone up to the circle where the tip sphere touches it, plus the spherical cap below that circle."""
+    a, r = atan(radius_mm / height_mm), tip_radius_mm
+    z_t, rho_t, h_cap = r * cos(a) ** 2 / sin(a), r * cos(a), r * (1.0 - sin(a))
+    return pi / 3 * (height_mm * radius_mm**2 - z_t * rho_t**2) + pi * h_cap**2 * (3.0 * r - h_cap) / 3
 
 
 def coin(radius_mm: float = 11.6, thickness_mm: float = 1.6, rim_width_mm: float = 1.0, rim_height_mm: float = 0.4) -> trimesh.Trimesh:
@@ -104,7 +116,8 @@ LIBRARY: dict[str, IndenterSpec] = {
     "cylinder_r3_l16": IndenterSpec(cylinder, pi * 3.0**2 * 16.0, "roller, radius 3 mm, 16 mm long, axis y"),
     "flat_punch_r3": IndenterSpec(flat_punch, pi * 3.0**2 * 6.0, "flat circular punch, radius 3 mm"),
     "cube_edge_6": IndenterSpec(cube_edge, 6.0**3, "6 mm cube, an edge down"),
-    "cone_r4_h6": IndenterSpec(cone, pi * 4.0**2 * 6.0 / 3, "cone, tip down, base radius 4 mm, 6 mm tall"),
+    "cone_r4_h6": IndenterSpec(cone, _rounded_cone_volume(4.0, 6.0, 0.5),
+                               "cone, tip down, base radius 4 mm, 6 mm to the apex, tip rounded to 0.5 mm"),
     "coin_r11.6": IndenterSpec(coin, pi * 11.6**2 * 1.6 + _ring_area(11.6, 1.0) * 0.4, "coin with a raised rim"),
     "brick_2x2": IndenterSpec(studded_brick, 15.8**2 * 9.6 + 4 * pi * 2.4**2 * 1.7, "Lego-like 2x2 brick, studs down"),
     "pocket_block_12": IndenterSpec(pocket_block, 12.0**2 * 6.0 - 6.0**2 * 1.5, "block with a 6 mm recessed pocket"),

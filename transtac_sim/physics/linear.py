@@ -5,7 +5,9 @@
   solved by conjugate gradients preconditioned with it (a few iterations while the Hessian has changed
   little) and the matrix is factorised again only when that does not converge in ``reuse_max_iterations``.
 - ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the
-  GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``.
+  GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``. Where CG
+  does not reach its tolerance in ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a
+  sharp tip), that system is solved by the direct path instead (``cg_fallbacks`` counts them).
 """
 
 from __future__ import annotations
@@ -85,24 +87,31 @@ class LinearSolver:
         self.reuse_max_iterations = reuse_max_iterations
         self.reuse_rtol = reuse_rtol
         self.factorisations = 0
+        self.cg_fallbacks = 0
         self._lu = None
         self._static: tuple[int, sp.csr_matrix] | None = None
 
     def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array) -> wp.array:
         """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed."""
         parts = H if isinstance(H, (list, tuple)) else [H]
-        if self.method == "direct":
-            if self._static is None or self._static[0] != id(parts[0]):  # parts[0] is reused: convert it once
-                self._static = (id(parts[0]), bsr_to_scipy(parts[0]))
-            A = self._static[1]
-            for P in parts[1:]:
-                A = A + bsr_to_scipy(P)
-            A = A[self._free][:, self._free].tocsc()
-            b = rhs.numpy().reshape(-1)[self._free]
-            x = np.zeros(3 * self._node_count)
-            x[self._free] = self._solve_free(A, b)
-            return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
-        return self._solve_cg(parts, rhs)
+        if self.method == "cg":
+            x = self._solve_cg(parts, rhs)
+            if x is not None:
+                return x
+            self.cg_fallbacks += 1
+        return self._solve_direct(parts, rhs)
+
+    def _solve_direct(self, parts: list[BsrMatrix], rhs: wp.array) -> wp.array:
+        if self._static is None or self._static[0] != id(parts[0]):  # parts[0] is reused: convert it once
+            self._static = (id(parts[0]), bsr_to_scipy(parts[0]))
+        A = self._static[1]
+        for P in parts[1:]:
+            A = A + bsr_to_scipy(P)
+        A = A[self._free][:, self._free].tocsc()
+        b = rhs.numpy().reshape(-1)[self._free]
+        x = np.zeros(3 * self._node_count)
+        x[self._free] = self._solve_free(A, b)
+        return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
 
     def _solve_free(self, A: sp.csc_matrix, b: np.ndarray) -> np.ndarray:
         if self._lu is not None and self._lu.shape == A.shape:
@@ -121,15 +130,16 @@ class LinearSolver:
         self.last_iterations = 1
         return self._lu.solve(b)
 
-    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array) -> wp.array:
-        H = parts[0]
-        if len(parts) > 1:
-            H = wp.sparse.bsr_copy(H)
-            for P in parts[1:]:
-                wp.sparse.bsr_axpy(P, H)
-        fem.project_linear_system(H, rhs, self._projector, normalize_projector=False)
-        x = wp.zeros_like(rhs)
+    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array) -> wp.array | None:
+        """CG on the device; None if it did not converge (rhs is left as it was)."""
+        H = wp.sparse.bsr_copy(parts[0])  # parts[0] is reused by the caller: project a copy
+        for P in parts[1:]:
+            wp.sparse.bsr_axpy(P, H)
+        b = wp.clone(rhs)
+        fem.project_linear_system(H, b, self._projector, normalize_projector=False)
+        x = wp.zeros_like(b)
         M = preconditioner(H, ptype="block_jacobi_direct")
-        iters, err, _ = cg(H, rhs, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
+        iters, err, atol = cg(H, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
         self.last_iterations = int(iters)
-        return x
+        ok = float(err) <= float(atol) and np.all(np.isfinite(x.numpy()))
+        return x if ok else None

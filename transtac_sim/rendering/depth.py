@@ -2,7 +2,12 @@
 non-transparent surface along the camera ray, the ray refracted (or, past the critical angle, reflected)
 deterministically at every dielectric interface (backing, gel): what the camera sees through the gel
 (indenter, marker, housing). +inf where the ray leaves the scene. Traced with Mitsuba's ray queries on
-an already loaded scene, at the recorded pixels' exact rays (lens distortion included)."""
+an already loaded scene, at the recorded pixels' exact rays (lens distortion included).
+
+Contact: where the gel touches an indenter their surfaces coincide, and the ray spawned past the gel's
+surface (offset by Mitsuba's epsilon) can start just inside the indenter and next hit its far side from
+within. A hit on an indenter's inside (ray along its outward normal) therefore reports the gel surface the
+ray last crossed: that is where the indenter's near face is."""
 
 from __future__ import annotations
 
@@ -21,17 +26,24 @@ def depth_z(mi, mi_scene, origin: np.ndarray, directions_world: np.ndarray, R: n
                    mi.Vector3f(*[mi.Float(np.ascontiguousarray(directions_world[:, i], np.float32)) for i in range(3)]))
     active = mi.Bool(True)
     hit_p = mi.Point3f(np.inf, np.inf, np.inf)
+    last_interface_p = mi.Point3f(np.inf, np.inf, np.inf)
+    indenters = [mi.ShapePtr(s) for s in mi_scene.shapes() if s.id().startswith("indenter")]
     ctx = mi.BSDFContext()
     for _ in range(max_interfaces):
         si = mi_scene.ray_intersect(ray, active)
         bsdf = si.bsdf(ray)
         clear = active & si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.DeltaTransmission)
         stop = active & si.is_valid() & ~clear
-        hit_p = dr.select(stop, si.p, hit_p)
+        on_indenter = mi.Bool(False)
+        for ptr in indenters:
+            on_indenter |= si.shape == ptr
+        from_inside = on_indenter & (dr.dot(ray.d, si.n) > 0) & dr.isfinite(last_interface_p.x)
+        hit_p = dr.select(stop, dr.select(from_inside, last_interface_p, si.p), hit_p)
+        last_interface_p = dr.select(clear, si.p, last_interface_p)
         bs, _ = bsdf.sample(ctx, si, mi.Float(0.99999), mi.Point2f(0.5, 0.5), clear)
         ray = dr.select(clear, si.spawn_ray(si.to_world(bs.wo)), ray)
         active = clear
-        dr.eval(ray, active, hit_p)
+        dr.eval(ray, active, hit_p, last_interface_p)
         if not dr.any(active):
             break
     p = np.column_stack([np.array(hit_p.x), np.array(hit_p.y), np.array(hit_p.z)])
