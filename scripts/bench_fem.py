@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_md import machine_name as machine  # noqa: E402
@@ -118,7 +117,6 @@ def main() -> None:
     parser.add_argument("--sweep", action="store_true", help="also the resolution sweep (10 frames/s)")
     parser.add_argument("--out-md", type=Path, default=ROOT / "BENCHMARKS.md")
     args = parser.parse_args()
-    wp.config.quiet = True
     lines = [f"Machine: {machine(args.device)}. Command: `.venv/bin/python scripts/bench_fem.py "
              f"{' '.join(sys.argv[1:])}`", ""]
     if args.frames:

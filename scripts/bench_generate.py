@@ -64,8 +64,8 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         "| --- | --- | --- | --- |",
         *rows,
         "",
-        f"Gel meshes: {len(set(cache_dir().glob('*.npz')) - cached_before)} built in this run; the other "
-        "sequences' meshes were read from the mesh cache (the `mesh` stage).",
+        f"Gel meshes built in this run: {len(set(cache_dir().glob('*.npz')) - cached_before)} for {sequences} "
+        "sequence(s) (a contact-free scene has none; any other was read from the mesh cache).",
     ])
     causes = [f for f in report.frames_failed if not f.get("reason", "").startswith("not simulated")]
     if causes:

@@ -37,7 +37,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_md import machine_name, update_section  # noqa: E402
@@ -188,7 +187,6 @@ def main() -> None:
     ap.add_argument("--replot", action="store_true",
                     help="no solving: table and plot again from out/fem_error_vs_runtime_<device>[_quick].json")
     a = ap.parse_args()
-    wp.config.quiet = True
     png = a.out_png or ROOT / "docs" / "figures" / f"fem_error_vs_runtime{'_gpu' if a.device == 'cuda' else ''}.png"
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=6, radius=RADIUS))
     sweep, ref_setting = settings(a.quick)

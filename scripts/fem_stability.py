@@ -238,10 +238,7 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these")
     parser.add_argument("-v", "--verbose", action="store_true", help="print every frame")
     args = parser.parse_args()
-    import warp as wp
 
-    wp.config.quiet = True
-    wp.config.verbose = False
     block = QUICK if args.quick else FULL
     todo = [c for c in cases() if not args.only or any(s in c.name for s in args.only)]
     V, _ = block.mesh()

@@ -1,6 +1,7 @@
 """Quasi-static FEM of the gel (Warp FEM): stable Neo-Hookean P1/P2 tets, rigid mesh indenters with
 penalty contact and smoothed Coulomb friction, Newton with line search and adaptive sub-stepping."""
 
+import logging
 import os
 
 import warp as wp
@@ -17,7 +18,8 @@ from transtac_sim.physics.solver import (
 )
 
 # Warp reports every kernel module it loads; users see that as noise. TRANSTAC_SIM_WARP_VERBOSE=1 keeps it.
-wp.config.quiet = os.environ.get("TRANSTAC_SIM_WARP_VERBOSE", "") != "1"
+if os.environ.get("TRANSTAC_SIM_WARP_VERBOSE", "") != "1":
+    wp.config.log_level = logging.WARNING
 
 __all__ = [
     "ElasticMaterial",
