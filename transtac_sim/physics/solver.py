@@ -355,13 +355,14 @@ class QuasiStaticSolver:
         self._last_ind = ind
         return True, iterations, ""
 
-    def _stiffen_contact(self, target, prev) -> tuple[bool, int, str]:
+    def _stiffen_contact(self, target, prev) -> tuple[bool, int, str, float]:
         """Penalty penetration is about p / k: while a converged step leaves more than penetration_tol_mm,
         raise k by 1.5 x penetration / tolerance (at most 10x at a time, ``max_stiffness_raises`` times) and
-        solve the step again from where it is. The raised k is kept for the following frames."""
+        solve the step again from where it is. The raised k is kept for the following frames. Returns
+        (converged, Newton iterations, why not, the penetration (mm) of the last converged solve)."""
         ok, iterations, why = True, 0, ""
+        pen = self._max_penetration(self._last_ind)
         for _ in range(self.settings.max_stiffness_raises):
-            pen = self._max_penetration(self._last_ind)
             if pen <= self.settings.penetration_tol_mm:
                 break
             self.contact_stiffness *= min(10.0, 1.5 * pen / self.settings.penetration_tol_mm)
@@ -369,7 +370,8 @@ class QuasiStaticSolver:
             iterations += it
             if not ok:
                 break
-        return ok, iterations, why
+            pen = self._max_penetration(self._last_ind)
+        return ok, iterations, why, pen
 
     def _min_det(self, u) -> float:
         J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
@@ -434,11 +436,10 @@ class QuasiStaticSolver:
                 ok, it, why = self._solve_step(target, prev)
                 total_iterations += it
                 if ok:
-                    ok, it, why = self._stiffen_contact(target, prev)
+                    ok, it, why, pen = self._stiffen_contact(target, prev)
                     total_iterations += it
                 if ok:
                     min_det = self._min_det(self.u)
-                    pen = self._max_penetration(self._last_ind)
                     if not np.isfinite(min_det) or min_det <= 0.0:
                         ok, why = False, f"det F = {min_det:.3g} <= 0 (inverted element)"
                     elif pen > self.settings.penetration_tol_mm:
