@@ -76,7 +76,8 @@ def test_press_moves_the_surface_under_the_sphere_by_the_press_depth(tmp_path):
     # penetration tolerance (0.02 mm, SolverSettings.penetration_tol_mm) inside it, and the vertex nearest
     # the axis touches it, so it moved down by depth0 less the sphere's sag at its radius: within 0.05 mm, the
     # penalty acting at the P2 contact quadrature points, between which a corner vertex of this 1.5 mm mesh
-    # sags 0.004-0.035 mm below the sphere depending on the mesh (fTetWild's differs from run to run).
+    # sags 0.004-0.035 mm below the sphere depending on the mesh (fTetWild's differs from run to run; the
+    # spread of every bound here over fresh meshes: scripts/tiny_press_mesh_spread.py).
     bf = np.unique(mesh["boundary_faces"])
     top = bf[np.abs(rest[bf, 2] - 5.0) < 1e-9]
     r_xy = np.hypot(v[top, 0] - pose[0, 3], v[top, 1] - pose[1, 3])
