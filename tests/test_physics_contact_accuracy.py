@@ -5,7 +5,8 @@ u_y = 0 on y = 0: exact by symmetry), the total force is 4 x (-F_z), compared wi
 ``physics/analytic.py`` without any correction factor. P2 elements (the default order). E = 1 MPa.
 
 Measured (2-core CPU, about 3 min for the file): Hertz +0.2 % (nu 0.3), -1.6 % (0.45), -1.9 % (0.49); bonded
-layer -0.7 % (d 0.1 mm) and +0.9 % (d 0.25 mm).
+layer -1.5 % (d 0.1 mm) and +0.3 % (d 0.25 mm) (against the bonded coefficients as corrected in issue 12:
+the earlier, wrong ones put the reference 0.7 % and 0.6 % lower, and the errors at -0.7 % and +0.9 %).
 
 Error sources and how each is kept below the tolerance:
 

@@ -1,6 +1,7 @@
 """Trajectory segments -> poses, and press-to-force through the solver."""
 
 import numpy as np
+import pytest
 import trimesh
 from pydantic import TypeAdapter
 
@@ -59,3 +60,16 @@ def test_press_to_force_reaches_target():
     results = list(simulate_sequence(solver, [start], [segs], 2.0))
     forces = [-r.forces_n[0, 2] for r in results]
     np.testing.assert_allclose(forces, [0.1, 0.2], rtol=0.011)
+
+
+def test_press_to_force_beside_the_gel_says_it_never_touched():
+    """A sphere 8 mm beside the edge of an 8 mm block, pressed to a force: every secant trial gives 0 N."""
+    from transtac_sim.physics import SolverDidNotConverge, SolverSettings
+
+    V, T = gel_block(8.0, 8.0, 2.0, h_fine=1.0, fine_half_width=1.0, growth=1.8)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_sphere()], SolverSettings(degree=1))
+    start = np.eye(4)
+    start[:3, 3] = [14.0, 0.0, 2.0 + 2.0 + 0.05]
+    segs = _segments({"kind": "press", "frames": 1, "force_n": 0.2})
+    with pytest.raises(SolverDidNotConverge, match="'s' never touched the gel"):
+        list(simulate_sequence(solver, [start], [segs], 2.0, max_force_trials=4))

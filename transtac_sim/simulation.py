@@ -1,7 +1,8 @@
 """The simulator stage as the dataset sees it: per frame, the deformed gel, the markers' positions, the
 indenters' poses and forces, and the solver record.
 
-A contact-free scene never meshes the gel or calls the FEM solver: every frame is the rest state.
+A contact-free scene never meshes the gel or calls the FEM solver: every frame is the rest state. A frame
+in which an indenter is pressed into the gel's plane but exerts no force fails (``check_pressed_indenters_touch``).
 """
 
 from __future__ import annotations
@@ -36,11 +37,42 @@ class PhysicsFrame:
 
 
 REST_SOLVER = {"converged": True, "iterations": 0, "residual": 0.0, "seconds": 0.0}
+#: An indenter whose lowest point is more than this below the undeformed contact surface is pressed in (mm).
+PRESSED_MM = 0.05
 
 
 def _depth_below_surface(setup: SceneSetup, k: int, pose: np.ndarray) -> float:
     v = setup.indenters[k].mesh.mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
     return float(max(0.0, setup.sensor.gel_size_mm[2] - v[:, 2].min()))
+
+
+def check_pressed_indenters_touch(setup: SceneSetup, frame: int, poses: list[np.ndarray],
+                                  forces_n: list[np.ndarray], depths_mm: list[float]) -> None:
+    """Refuse a frame in which an indenter is pressed in (lowest point more than PRESSED_MM below the
+    undeformed surface) but the FEM gives it no force at all: its labels would report a press that touched
+    nothing. Raises SimulationFailed naming the frame and the indenter, and saying whether the indenter's
+    pressed-in part lies beside the gel's top face (a placement error: start_xy_mm, the mesh's origin,
+    ``anchor``) or over it (a contact smaller than the mesh resolves). Gel frame, mm, N."""
+    w, h, t = setup.sensor.gel_size_mm
+    for ind, pose, force, depth in zip(setup.indenters, poses, forces_n, depths_mm, strict=True):
+        if depth <= PRESSED_MM or np.any(np.asarray(force) != 0.0):
+            continue
+        mesh = ind.mesh.mesh
+        v = mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
+        # every triangle reaching below the surface: its xy box holds the whole pressed-in part
+        low = v[mesh.faces[(v[mesh.faces][:, :, 2] < t).any(axis=1)].ravel(), :2]
+        lo, hi = low.min(axis=0), low.max(axis=0)
+        where = (f"its part below the surface lies within x {lo[0]:.2f}..{hi[0]:.2f} mm, "
+                 f"y {lo[1]:.2f}..{hi[1]:.2f} mm (gel frame)")
+        if lo[0] >= w / 2 or hi[0] <= -w / 2 or lo[1] >= h / 2 or hi[1] <= -h / 2:
+            why = (f"{where}, beside the gel's top face (x -{w / 2:g}..{w / 2:g}, y -{h / 2:g}..{h / 2:g} mm): "
+                   f"check its start_xy_mm and where its mesh's origin lies (anchor = {ind.config.anchor!r}; "
+                   "'footprint' places it by its shape)")
+        else:
+            why = (f"{where}, over the gel, but no contact point of the gel's surface is inside it: the contact "
+                   "is smaller than the mesh resolves (lower [mesh] contact_edge_mm)")
+        raise SimulationFailed(frame, f"indenter {ind.config.name!r} is pressed {depth:.3g} mm below the "
+                                      f"undeformed contact surface but exerts no force; {why}")
 
 
 def simulate_frames(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFrame]:
@@ -98,9 +130,11 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             raise SimulationFailed(f, str(e)) from None
         r = res.record
         poses = [np.asarray(p) for p in res.poses]
+        forces = [np.asarray(x) for x in res.forces_n]
+        depths = [_depth_below_surface(setup, k, p) for k, p in enumerate(poses)]
+        check_pressed_indenters_touch(setup, f, poses, forces, depths)
         yield PhysicsFrame(
-            f, markers, g.vertices_mm + res.displacement_mm, g.vertices_mm, faces, poses,
-            [np.asarray(x) for x in res.forces_n], [_depth_below_surface(setup, k, p) for k, p in enumerate(poses)],
+            f, markers, g.vertices_mm + res.displacement_mm, g.vertices_mm, faces, poses, forces, depths,
             {"converged": bool(r.converged), "iterations": int(r.iterations), "residual": float(r.residual),
              "seconds": float(r.seconds), "min_det_f": float(r.min_det_f), "substeps": int(r.substeps)},
         )

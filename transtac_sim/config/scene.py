@@ -36,12 +36,18 @@ class Mesh(_Strict):
 
 class Indenter(_Strict):
     """A rigid indenter. ``mesh`` is an STL/OBJ/PLY path relative to the scene file, in ``units``.
-    Its start: the mesh origin at ``start_xy_mm`` with its lowest point ``start_gap_mm`` above the
-    contact surface, turned by ``rotation_deg`` (x, then y, then z, about the mesh origin)."""
+    Its start: turned by ``rotation_deg`` (x, then y, then z, about the mesh origin), its ``anchor`` at
+    ``start_xy_mm`` and its lowest point ``start_gap_mm`` above the contact surface. ``anchor``:
+    ``"footprint"`` (default) is the centre of the part a press touches (the xy centre of the body within
+    0.5 mm of its lowest point, transtac_sim/indenters/placement.py), ``"origin"`` the mesh file's origin.
+    Poses (``pose_mm``) map the mesh file's frame either way, and ``rotate`` / ``roll`` segments turn about
+    its origin."""
 
     name: str = Field(min_length=1)
     mesh: str
     units: Literal["mm", "m", "inch"]
+    anchor: Literal["footprint", "origin"] = Field(
+        default="footprint", description="the point placed at start_xy_mm: the footprint's centre or the mesh origin")
     start_xy_mm: tuple[float, float] = (0.0, 0.0)
     start_gap_mm: float = Field(default=0.5, ge=-100.0, le=100.0)
     rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)

@@ -102,10 +102,12 @@ def _solve_for_forces(solver: QuasiStaticSolver, poses: list[np.ndarray], target
     which = [i for i, f in enumerate(targets) if f is not None]
     offsets = np.zeros(len(poses))
     history: list[tuple[np.ndarray, np.ndarray]] = []
+    touched = np.zeros(len(which), dtype=bool)  # any force in any trial
     for _trial in range(max_trials):
         trial_poses = [_translate(P, [0.0, 0.0, -offsets[i]]) for i, P in enumerate(poses)]
         solver.restore(state)
         result = solver.solve_frame(trial_poses)
+        touched |= np.array([np.any(result.forces_n[i] != 0.0) for i in which])
         err = np.array([-result.forces_n[i, 2] - targets[i] for i in which])
         if np.all(np.abs(err) <= tol_n):
             return result, trial_poses
@@ -120,9 +122,12 @@ def _solve_for_forces(solver: QuasiStaticSolver, poses: list[np.ndarray], target
         offsets[which] += step
     solver.restore(state)
     names = ", ".join(solver.indenters[i].name for i in which)
+    missed = [solver.indenters[i].name for i, t in zip(which, touched, strict=True) if not t]
+    why = (f"; {', '.join(map(repr, missed))} never touched the gel (no force in any trial): check where it is "
+           "placed over the gel" if missed else "")
     raise SolverDidNotConverge(
         f"frame {solver.frame_index}: press-to-force for indenter(s) {names} did not reach the target force "
-        f"within {tol_n} N after {max_trials} secant trials (last errors {err.tolist()} N)"
+        f"within {tol_n} N after {max_trials} secant trials (last errors {err.tolist()} N){why}"
     )
 
 

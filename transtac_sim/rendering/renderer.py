@@ -5,11 +5,20 @@ A ``Renderer`` builds one Mitsuba scene per illumination that is asked for (a UV
 builds the white-light scene; a depth-only request builds a light-less geometry scene) and one sensor
 per camera; ``render(frame)`` moves the gel, markers and indenters in place and renders. The same code
 runs ``llvm_ad_rgb`` (CPU) and ``cuda_ad_rgb`` (GPU): ``RenderSettings.variant``, or automatic.
+
+Reproducibility: the film adds each sample's filtered radiance to its pixels with float atomic adds, so a
+pixel's sum depends on the order in which the samples arrive. Dr.Jit's LLVM backend spreads a render over
+its thread pool, and that order changed from run to run (11-35 % of the float32 values of a 640x480
+render differed in their last bits, now and then one 8-bit value by one grey level). On the CPU the render
+calls therefore run on one Dr.Jit thread (``_one_thread``): the same scene, seed and variant give the same
+bits in every run and process (about 2x the render time on 2 cores; ``generate --workers`` runs sequences
+in parallel instead). The GPU variant keeps its parallel atomics and is not reproducible to the last bit.
 """
 
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +36,22 @@ class RenderOutput:
     linear: dict[tuple[str, str], np.ndarray]  # (camera, illumination) -> (H, W, 3) float32, recorded geometry
     depth: dict[str, np.ndarray]  # camera -> (H, W) float32 z-depth mm (+inf: nothing hit)
     seconds: dict[str, float] = field(default_factory=dict)  # per stage
+
+
+@contextmanager
+def _one_thread(variant: str):
+    """Run Dr.Jit's LLVM kernels on one thread inside the block (see the module docstring)."""
+    if not variant.startswith("llvm"):
+        yield
+        return
+    import drjit as dr
+
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(threads)
 
 
 class Renderer:
@@ -51,11 +76,12 @@ class Renderer:
                 a.update(frame)
         out.seconds["update"] = time.perf_counter() - t
         t = time.perf_counter()
-        for i, ill in enumerate(self.request.illuminations):
-            scene = self.assemblies[ill].mi_scene
-            for j, (cam, model) in enumerate(self.cameras.items()):
-                img = mi.render(scene, sensor=self.sensors[cam], spp=self.spp, seed=4 * seed + 2 * i + j)
-                out.linear[(cam, ill)] = model.to_recorded(np.array(img))
+        with _one_thread(self.variant):
+            for i, ill in enumerate(self.request.illuminations):
+                scene = self.assemblies[ill].mi_scene
+                for j, (cam, model) in enumerate(self.cameras.items()):
+                    img = mi.render(scene, sensor=self.sensors[cam], spp=self.spp, seed=4 * seed + 2 * i + j)
+                    out.linear[(cam, ill)] = model.to_recorded(np.array(img))
         out.seconds["render"] = time.perf_counter() - t
         if "depth" in self.request.aovs:
             t = time.perf_counter()
