@@ -1,7 +1,8 @@
 """Shared by the benchmark scripts: the machine's name and BENCHMARKS.md sections.
 
 Each script owns one section between ``<!-- BEGIN name -->`` and ``<!-- END name -->`` and replaces only
-that one, so results of different scripts and machines live side by side.
+that one, so results of different scripts and machines live side by side. A section measured on another
+machine (the GPU machine) comes back as a file: ``python scripts/benchmarks_md.py SECTION FILE``.
 """
 
 from __future__ import annotations
@@ -33,3 +34,9 @@ def update_section(path: Path, name: str, markdown: str) -> None:
     else:
         text = text.rstrip() + f"\n\n## {name}\n\n{block}\n"
     path.write_text(text)
+
+
+if __name__ == "__main__":  # python scripts/benchmarks_md.py SECTION FILE: a section measured elsewhere (a GPU)
+    import sys
+
+    update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", sys.argv[1], Path(sys.argv[2]).read_text())

@@ -3,7 +3,7 @@
 #   - system packages: libllvm19 (Mitsuba's CPU variants crash with Debian's default LLVM 15);
 #     libsuitesparse-dev (CHOLMOD, built into scikit-sparse: the FEM's sparse Cholesky) and OpenBLAS (CHOLMOD's
 #     BLAS; Debian's default reference BLAS makes it ~5x slower)
-#   - a virtual environment at .venv with the package (editable) and its test tools
+#   - a virtual environment at .venv with the package (editable) and its test tools, and `trackers` (ByteTrack)
 # Usage: bash scripts/install.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -30,6 +30,9 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[install] pip install -e .[dev] (first time: a few minutes)"
   .venv/bin/python -m pip install -q -U pip
   .venv/bin/python -m pip install -q -e ".[dev]"
+  # ByteTrack: `trackers` declares opencv-python, whose cv2 would overwrite opencv-contrib-python-headless's;
+  # its other needs are in pyproject.toml, so it goes in without its declared dependencies.
+  .venv/bin/python -m pip install -q --no-deps "trackers==2.6.1"
   touch "$stamp"
 fi
 echo "[install] ready: .venv/bin/transtac-sim"

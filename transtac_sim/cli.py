@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from transtac_sim.config import ConfigError
+from transtac_sim.perception_cli import register as register_perception
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Simulate the TransTac tactile sensor and generate labelled stereo datasets.")
@@ -237,6 +238,8 @@ def validate(dataset: Path = typer.Argument(..., help="dataset folder")) -> None
         raise typer.Exit(1)
     console.print(f"[bold green]valid[/]: {dataset}")
 
+
+register_perception(app)
 
 if __name__ == "__main__":
     app()

@@ -1,0 +1,90 @@
+"""Bad input to the perception commands: one clear line naming the file and what to do, exit status 2, and
+no output file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from synthetic_markers import draw_markers, grid_markers
+from typer.testing import CliRunner
+
+from transtac_sim.cli import app
+from transtac_sim.perception.detection.model_file import load_model
+from transtac_sim.perception.errors import PerceptionInputError
+from transtac_sim.perception.images import find_images, read_color_image
+
+runner = CliRunner()
+
+
+def _detect(args: list[str], out: Path):
+    res = runner.invoke(app, ["detect", *args, "--out", str(out)])
+    return res, " ".join(res.output.split())
+
+
+@pytest.fixture
+def images(tmp_path: Path) -> Path:
+    d = tmp_path / "frames"
+    d.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(d / f"{i:03d}.png"), draw_markers(grid_markers()))
+    return d
+
+
+def test_missing_empty_unreadable_and_grayscale_images_are_named(tmp_path: Path):
+    (tmp_path / "empty.png").write_bytes(b"")
+    (tmp_path / "text.png").write_text("not an image")
+    cv2.imwrite(str(tmp_path / "gray.png"), np.zeros((20, 20), np.uint8))
+    for name, words in (("nope.png", "not found"), ("empty.png", "empty"), ("text.png", "not a readable image"),
+                        ("gray.png", "grayscale")):
+        with pytest.raises(PerceptionInputError) as e:
+            read_color_image(tmp_path / name)
+        assert str(tmp_path / name) in str(e.value) and words in str(e.value)
+    (tmp_path / "no_images").mkdir()
+    with pytest.raises(PerceptionInputError, match="no images"):
+        find_images(tmp_path / "no_images")
+
+
+def test_a_bad_image_in_a_folder_stops_detect_before_anything_is_written(images: Path, tmp_path: Path):
+    cv2.imwrite(str(images / "zz_gray.png"), np.zeros((96, 128), np.uint8))
+    out = tmp_path / "det.json"
+    res, text = _detect([str(images), "--method", "blob"], out)
+    assert res.exit_code == 2 and "zz_gray.png" in text and "grayscale" in text
+    assert not out.exists()
+
+
+def test_image_size_the_model_was_not_trained_for(images: Path, tmp_path: Path):
+    out = tmp_path / "det.json"
+    res, text = _detect([str(images), "--method", "learned"], out)  # 128x96 frames, the shipped model: 640x480
+    assert res.exit_code == 2 and "000.png" in text and "128x96" in text and "640x480" in text
+    assert not out.exists()
+
+
+def test_a_file_that_is_not_a_detector_model(tmp_path: Path, images: Path):
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"\x00" * 100)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    for path in (junk, other, tmp_path / "missing.pt"):
+        with pytest.raises(PerceptionInputError) as e:
+            load_model(path)
+        assert str(path) in str(e.value) and "train-detector" in str(e.value)
+    out = tmp_path / "det.json"
+    res, text = _detect([str(images), "--model", str(other)], out)
+    assert res.exit_code == 2 and "not a detector model" in text and not out.exists()
+
+
+def test_detect_on_a_folder_writes_the_contract_file(images: Path, tmp_path: Path):
+    import json
+
+    out = tmp_path / "det.json"
+    res, _ = _detect([str(images), "--method", "blob"], out)
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    assert data["method"] == "blob" and data["model"] is None
+    assert [Path(e["path"]).name for e in data["images"]] == ["000.png", "001.png"]
+    assert len(data["images"][0]["markers"]) == len(grid_markers())
+    assert set(data["images"][0]["markers"][0]) == {"uv", "score"}

@@ -1,0 +1,27 @@
+"""Marker detectors: the classical blob baseline (``blob``) and the learned CenterNet-style network
+(``network``, run by ``runtime``). Both return :class:`Detections` in recorded-image pixels."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Detections:
+    uv: np.ndarray  # (N, 2) marker centres, px (OpenCV convention)
+    score: np.ndarray  # (N,) confidence in [0, 1]
+    size: np.ndarray  # (N, 2) box width, height, px
+    seconds: dict[str, float] = field(default_factory=dict)  # pre-processing, network, decoding
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    def boxes_xyxy(self, min_size_px: float = 0.0) -> np.ndarray:
+        half = np.maximum(self.size, min_size_px) / 2
+        return np.hstack([self.uv - half, self.uv + half])
+
+    def as_json(self) -> list[dict]:
+        return [{"uv": [round(float(u), 3), round(float(v), 3)], "score": round(float(s), 4)}
+                for (u, v), s in zip(self.uv, self.score, strict=True)]

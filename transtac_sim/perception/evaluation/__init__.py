@@ -1,0 +1,1 @@
+"""Metrics against a dataset's exact labels: detection (``detection``) and tracking (``tracking``)."""

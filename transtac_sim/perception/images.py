@@ -1,0 +1,65 @@
+"""Reading camera images and finding them on disk: a single image, a folder of images, or a dataset folder
+(every ``*_uv.png`` under its ``sequences/``). Images are 8-bit, BGR (OpenCV's order), H x W x 3."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from transtac_sim.perception.errors import PerceptionInputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class ImageRef:
+    path: Path  # where the file is
+    name: str  # as reported: the path as given, or relative to the dataset folder
+
+
+def is_dataset(folder: Path) -> bool:
+    return (folder / "sequences").is_dir()
+
+
+def find_images(target: Path, pattern: str = "*_uv.png") -> list[ImageRef]:
+    """The images a command works on: ``target`` itself, the images in a folder (sorted by name), or every
+    ``pattern`` under a dataset's ``sequences/`` (sorted). Raises PerceptionInputError when there are none."""
+    target = Path(target)
+    if not target.exists():
+        raise PerceptionInputError(target, "no such file or folder", "check the path")
+    if target.is_file():
+        return [ImageRef(target, str(target))]
+    if is_dataset(target):
+        refs = [ImageRef(p, str(p.relative_to(target))) for p in sorted((target / "sequences").glob(pattern))
+                if p.is_file()] if "/" in pattern else \
+               [ImageRef(p, str(p.relative_to(target))) for p in sorted((target / "sequences").rglob(pattern))]
+        what = f"no {pattern} under sequences/"
+    else:
+        refs = [ImageRef(p, str(p)) for p in sorted(target.iterdir())
+                if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+        what = f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder"
+    if not refs:
+        raise PerceptionInputError(target, what, "point to an image, a folder of images or a dataset folder")
+    return refs
+
+
+def read_color_image(path: Path) -> np.ndarray:
+    """An 8-bit BGR image (H, W, 3). A missing, unreadable, empty or single-channel file raises
+    PerceptionInputError naming it."""
+    path = Path(path)
+    if not path.is_file():
+        raise PerceptionInputError(path, "image not found", "check the path")
+    if path.stat().st_size == 0:
+        raise PerceptionInputError(path, "the file is empty", "re-export or re-record the image")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise PerceptionInputError(path, "not a readable image", "use PNG, JPEG, BMP or TIFF")
+    if image.ndim == 2 or image.shape[2] == 1:
+        raise PerceptionInputError(path, "grayscale image, the detector needs the colour (BGR) UV image",
+                                   "record the camera in colour")
+    if image.dtype != np.uint8:
+        raise PerceptionInputError(path, f"{image.dtype} pixels, 8-bit expected", "save the image as 8-bit")
+    return image[:, :, :3] if image.shape[2] == 4 else image

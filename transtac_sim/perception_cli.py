@@ -1,0 +1,113 @@
+"""The perception commands of ``transtac-sim`` (detect, train-detector, track). Each calls one library
+function of ``transtac_sim.perception`` and prints its report; bad input ends with one red line."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+console = Console()
+
+
+def _fail(e: Exception) -> None:
+    console.print(f"[bold red]error:[/] {e}")
+    raise typer.Exit(2) from None
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def detect(images: Path = typer.Argument(..., help="an image, a folder of images, or a dataset folder"),
+               out: Path = typer.Option(..., help="detection file to write (JSON)"),
+               method: str = typer.Option("learned", help="learned (the network) or blob (the classical baseline)"),
+               model: Path = typer.Option(None, help="detector model (.pt); default: the shipped one"),
+               device: str = typer.Option("auto", help="auto, cpu or cuda"),
+               refine: bool = typer.Option(True, help="refine centres by their intensity centroid"),
+               preview: Path = typer.Option(None, help="also write a PNG of the first image with its markers circled"),
+               ) -> None:
+        """Detect markers in UV images and write the pipeline's detection file."""
+        from transtac_sim.perception.detect import detect_images
+        from transtac_sim.perception.errors import PerceptionInputError
+
+        try:
+            with Progress(TextColumn("detecting"), BarColumn(), TextColumn("{task.completed}/{task.total} images"),
+                          TimeRemainingColumn(), console=console, transient=True) as bar:
+                task = bar.add_task("detect", total=None)
+                rep = detect_images(images, out, method, model, device, refine, preview,
+                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
+        except (PerceptionInputError, ValueError) as e:
+            _fail(e)
+        per = ", ".join(f"{k} {1000 * v / rep.images:.1f} ms" for k, v in rep.seconds.items())
+        console.print(f"[bold]{rep.images}[/] image(s), {rep.markers} markers ({rep.markers / rep.images:.1f} per image) "
+                      f"by {rep.method}{f' ({rep.model})' if rep.model else ''}; per image: {per}")
+        console.print(f"  wrote {rep.out}" + (f" and {rep.preview}" if rep.preview else ""))
+
+    @app.command("train-detector")
+    def train_detector_cmd(datasets: list[Path] = typer.Argument(..., help="dataset folders (transtac-sim generate)"),
+                           out: Path = typer.Option(..., help="model file to write (.pt; the .onnx beside it)"),
+                           steps: int = typer.Option(3000, min=1), batch: int = typer.Option(16, min=1),
+                           crop: int = typer.Option(128, min=32, help="training crop size, px (multiple of 8)"),
+                           width: int = typer.Option(16, min=4, help="network width (channels at stride 2)"),
+                           correlation_weight: float = typer.Option(0.0, min=0.0, help="lambda of the correlation term"),
+                           learning_rate: float = typer.Option(3e-3, min=0.0),
+                           device: str = typer.Option("auto", help="auto, cpu or cuda"),
+                           eval_every: int = typer.Option(500, min=1), seed: int = typer.Option(0)) -> None:
+        """Train the learned marker detector on generated datasets (split by sequence)."""
+        from transtac_sim.perception.errors import PerceptionInputError
+        from transtac_sim.perception.training.train import TrainConfig, train_detector
+
+        if crop % 8:
+            _fail(ValueError(f"--crop {crop}: must be a multiple of 8"))
+        cfg = TrainConfig(steps=steps, batch=batch, crop_px=crop, width=width, correlation_weight=correlation_weight,
+                          learning_rate=learning_rate, device=device, eval_every=eval_every, seed=seed)
+        command = "transtac-sim " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        recall = ["-"]
+        try:
+            with Progress(TextColumn("training"), BarColumn(), TextColumn("{task.completed}/{task.total} steps"),
+                          TextColumn("loss {task.fields[loss]:.4f}  val recall@2px {task.fields[recall]}"),
+                          TimeRemainingColumn(), console=console) as bar:
+                task = bar.add_task("train", total=steps, loss=float("nan"), recall="-")
+
+                def progress(step: int, loss: float, val: dict | None) -> None:
+                    if val:
+                        recall[0] = f"{val['recall@2px']:.4f} (precision {val['precision@2px']:.4f})"
+                    bar.update(task, completed=step, loss=loss, recall=recall[0])
+
+                rep = train_detector(datasets, out, cfg, progress, command)
+        except PerceptionInputError as e:
+            _fail(e)
+        console.print(f"trained on {rep.train_images} images ({rep.val_images} validation) in {rep.seconds:.0f} s on {rep.device}")
+        if rep.val:
+            v = rep.val[-1]
+            console.print(f"  validation: precision {v['precision@2px']:.4f}, recall {v['recall@2px']:.4f} at 2 px, "
+                          f"median error {v['error_median_px']:.3f} px (raw offset head)")
+        console.print(f"  wrote {rep.model} and {rep.model.with_suffix('.onnx')}")
+
+    @app.command()
+    def track(images: Path = typer.Argument(..., help="a folder of frames (name order) or a dataset folder"),
+              out: Path = typer.Option(..., help="tracking file to write (JSON)"),
+              method: str = typer.Option("bytetrack", help="bytetrack or flow (the optical-flow baseline)"),
+              detector: str = typer.Option("learned", help="learned or blob"),
+              model: Path = typer.Option(None, help="detector model (.pt); default: the shipped one"),
+              sequence: str = typer.Option(None, help="dataset sequence (default: the first)"),
+              camera: str = typer.Option("left", help="dataset camera: left or right"),
+              device: str = typer.Option("auto", help="auto, cpu or cuda")) -> None:
+        """Track markers over a sequence of UV images: per-frame track ids and displacements."""
+        from transtac_sim.perception.errors import PerceptionInputError
+        from transtac_sim.perception.track import track_images
+
+        try:
+            with Progress(TextColumn("detecting"), BarColumn(), TextColumn("{task.completed}/{task.total} frames"),
+                          TimeRemainingColumn(), console=console, transient=True) as bar:
+                task = bar.add_task("track", total=None)
+                rep = track_images(images, out, method, detector, model, sequence, camera, device,
+                                   progress=lambda done, total: bar.update(task, completed=done, total=total))
+        except (PerceptionInputError, ValueError) as e:
+            _fail(e)
+        console.print(f"[bold]{rep.frames}[/] frame(s), {rep.tracks} tracks by {method} "
+                      f"(detect {rep.seconds['detect']:.2f} s, track {rep.seconds['track']:.2f} s)")
+        console.print(f"  wrote {rep.out}")
