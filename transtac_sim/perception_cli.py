@@ -1,4 +1,4 @@
-"""The perception commands of ``transtac-sim`` (detect, train-detector, track). Each calls one library
+"""The perception commands of ``transtac-sim`` (detect, train-detector, track, reconstruct). Each calls one library
 function of ``transtac_sim.perception`` and prints its report; bad input ends with one red line."""
 
 from __future__ import annotations
@@ -111,3 +111,34 @@ def register(app: typer.Typer) -> None:
         console.print(f"[bold]{rep.frames}[/] frame(s), {rep.tracks} tracks by {method} "
                       f"(detect {rep.seconds['detect']:.2f} s, track {rep.seconds['track']:.2f} s)")
         console.print(f"  wrote {rep.out}")
+
+    @app.command()
+    def reconstruct(out: Path = typer.Option(..., help="output folder (frames/, summary.json, preview.png)"),
+                    dataset: Path = typer.Option(None, help="a generated dataset (its calibration.json and UV images)"),
+                    sequence: str = typer.Option(None, help="dataset sequence (default: the first)"),
+                    calibration: Path = typer.Option(None, help="calibration.json (with --left and --right)"),
+                    left: Path = typer.Option(None, help="left camera: an image, a folder of images or a video"),
+                    right: Path = typer.Option(None, help="right camera: as --left, paired in sorted order"),
+                    matcher: str = typer.Option("delaunay", help="delaunay, hungarian, epipolar_nn, farneback or sgbm"),
+                    detector: str = typer.Option("learned", help="learned or blob"),
+                    model: Path = typer.Option(None, help="detector model (.pt); default: the shipped one"),
+                    stack: Path = typer.Option(None, help="flat-stack JSON for refraction-aware triangulation "
+                                                          "(stereo/triangulation.py); without it: linear"),
+                    device: str = typer.Option("auto", help="auto, cpu or cuda")) -> None:
+        """3D marker positions from both cameras: detect, track, match and triangulate every frame."""
+        from transtac_sim.perception.errors import PerceptionInputError
+        from transtac_sim.perception.reconstruct import reconstruct as run
+
+        try:
+            with Progress(TextColumn("reconstructing"), BarColumn(), TextColumn("{task.completed}/{task.total} frames"),
+                          TimeRemainingColumn(), console=console, transient=True) as bar:
+                task = bar.add_task("reconstruct", total=None)
+                rep = run(out, dataset=dataset, sequence=sequence, calibration=calibration, left=left, right=right,
+                          matcher=matcher, detector=detector, model=model, stack=stack, device=device,
+                          progress=lambda done, total: bar.update(task, completed=done, total=total))
+        except (PerceptionInputError, ValueError) as e:
+            _fail(e)
+        console.print(f"[bold]{rep.frames}[/] frame(s), {rep.mean_matches:.1f} matches per frame ({matcher}, "
+                      f"{rep.triangulation} triangulation); per frame: detect {1000 * rep.seconds['detect']:.0f} ms, "
+                      f"track {1000 * rep.seconds['track']:.0f} ms")
+        console.print(f"  wrote {rep.out}/frames/, summary.json, preview.png")
