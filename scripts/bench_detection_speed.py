@@ -74,7 +74,7 @@ def main(device: str = typer.Option("cpu"), pairs: int = typer.Option(20, min=1)
     for name, fn in runs.items():
         wall, split = _time(fn, data, repeats)
         rows.append(f"| {name} | {1000 * wall:.2f} | {1 / wall:.1f} | " + ", ".join(f"{k} {1000 * v:.2f}" for k, v in split.items()) + " |")
-    load = ", load average {:.1f} at the end".format(os.getloadavg()[0]) if device == "cpu" else ""
+    load = f", load average {os.getloadavg()[0]:.1f} at the end" if device == "cpu" else ""
     md = (f"`python scripts/bench_detection_speed.py --device {device}` on {where} (torch {torch.__version__}{load}), "
           f"{time.strftime('%Y-%m-%d')}: {len(data)} stereo pairs of 640x480 UV images x {repeats}, medians.\n\n"
           "| detector | ms per stereo pair | stereo pairs per second | split (ms) |\n| --- | --- | --- | --- |\n" + "\n".join(rows))

@@ -9,9 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from synthetic_markers import draw_markers
 from typer.testing import CliRunner
 
-from synthetic_markers import draw_markers
 from transtac_sim.cli import app
 
 runner = CliRunner()

@@ -25,7 +25,13 @@ import numpy as np
 from transtac_sim.perception.detect import make_detector
 from transtac_sim.perception.errors import PerceptionInputError
 from transtac_sim.perception.images import ImageRef, find_images, read_color_image
-from transtac_sim.perception.stereo import MATCHERS, MatchParams, image_matcher, load_calibration, load_flat_stack
+from transtac_sim.perception.stereo import (
+    MATCHERS,
+    MatchParams,
+    image_matcher,
+    load_calibration,
+    load_flat_stack,
+)
 from transtac_sim.perception.stereo.calibration import check_image_size
 from transtac_sim.perception.stereo.triangulation import triangulate_linear, triangulate_refracted
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
