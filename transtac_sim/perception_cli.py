@@ -1,4 +1,4 @@
-"""The perception commands of ``transtac-sim`` (detect, train-detector, track, reconstruct). Each calls one library
+"""The perception commands of ``transtac-sim`` (detect, train-detector, track, calibrate, reconstruct). Each calls one library
 function of ``transtac_sim.perception`` and prints its report; bad input ends with one red line."""
 
 from __future__ import annotations
@@ -142,3 +142,27 @@ def register(app: typer.Typer) -> None:
                       f"{rep.triangulation} triangulation); per frame: detect {1000 * rep.seconds['detect']:.0f} ms, "
                       f"track {1000 * rep.seconds['track']:.0f} ms")
         console.print(f"  wrote {rep.out}/frames/, summary.json, preview.png")
+
+    @app.command()
+    def calibrate(left: Path = typer.Option(..., help="left camera's chessboard images (a folder, sorted)"),
+                  right: Path = typer.Option(..., help="right camera's images of the same board views"),
+                  out: Path = typer.Option(..., help="calibration.json to write"),
+                  board: str = typer.Option(..., help="inner corners, columns x rows, e.g. 9x6"),
+                  square_mm: float = typer.Option(..., min=0.0, help="chessboard square size, mm")) -> None:
+        """Stereo calibration from chessboard images of both cameras (OpenCV), as calibration.json."""
+        from transtac_sim.perception.errors import PerceptionInputError
+        from transtac_sim.perception.stereo.board_calibration import calibrate_stereo
+
+        try:
+            cols, rows = (int(x) for x in board.lower().split("x"))
+        except ValueError:
+            _fail(ValueError(f"--board {board!r}: give inner corners as COLUMNSxROWS, e.g. 9x6"))
+        try:
+            with console.status("finding the board and calibrating..."):
+                rep = calibrate_stereo(left, right, out, (cols, rows), square_mm)
+        except PerceptionInputError as e:
+            _fail(e)
+        console.print(f"{rep.pairs_used} of {rep.pairs_total} pairs used; RMS reprojection left {rep.rms_left_px:.3f} px, "
+                      f"right {rep.rms_right_px:.3f} px, stereo {rep.rms_stereo_px:.3f} px; baseline {rep.baseline_mm:.3f} mm, "
+                      f"f = {rep.focal_px[0]:.2f} / {rep.focal_px[1]:.2f} px")
+        console.print(f"  wrote {rep.out}")
