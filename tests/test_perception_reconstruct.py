@@ -97,3 +97,9 @@ def test_bad_inputs_name_the_file_and_write_nothing(tmp_path: Path):
     cv2.imwrite(str(root / "right" / "001.png"), np.zeros((*SHAPE, 3), np.uint8))
     res, text = _run(root, tmp_path / "out")
     assert res.exit_code == 2 and "320" in text and "640" in text and not (tmp_path / "out").exists()
+
+
+def test_dense_needs_the_white_light_images(tmp_path: Path):
+    root, _ = _scene(tmp_path, frames=1)
+    res, text = _run(root, tmp_path / "out", "--dense", "sgbm")
+    assert res.exit_code == 2 and "--left-white" in text and not (tmp_path / "out").exists()

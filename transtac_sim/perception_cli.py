@@ -124,6 +124,9 @@ def register(app: typer.Typer) -> None:
                     model: Path = typer.Option(None, help="detector model (.pt); default: the shipped one"),
                     stack: Path = typer.Option(None, help="flat-stack JSON for refraction-aware triangulation "
                                                           "(stereo/triangulation.py); without it: linear"),
+                    dense: str = typer.Option("none", help="none or sgbm: dense depth of the white-light pair, aligned to the markers"),
+                    left_white: Path = typer.Option(None, help="left white-light images (with --dense, without --dataset)"),
+                    right_white: Path = typer.Option(None, help="right white-light images (with --dense, without --dataset)"),
                     device: str = typer.Option("auto", help="auto, cpu or cuda")) -> None:
         """3D marker positions from both cameras: detect, track, match and triangulate every frame."""
         from transtac_sim.perception.errors import PerceptionInputError
@@ -135,7 +138,7 @@ def register(app: typer.Typer) -> None:
                 task = bar.add_task("reconstruct", total=None)
                 rep = run(out, dataset=dataset, sequence=sequence, calibration=calibration, left=left, right=right,
                           matcher=matcher, detector=detector, model=model, stack=stack, device=device,
-                          progress=lambda done, total: bar.update(task, completed=done, total=total))
+                          dense=dense, left_white=left_white, right_white=right_white, progress=lambda done, total: bar.update(task, completed=done, total=total))
         except (PerceptionInputError, ValueError) as e:
             _fail(e)
         console.print(f"[bold]{rep.frames}[/] frame(s), {rep.mean_matches:.1f} matches per frame ({matcher}, "

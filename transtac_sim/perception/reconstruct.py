@@ -6,6 +6,9 @@ calibration file with left and right image folders (paired in sorted order), sin
 Triangulation is refraction-aware when a flat-stack file is given (``stereo.triangulation``), else linear
 (pinhole; about 2.6 mm off through the TransTac's backing and gel, BENCHMARKS.md ``matching_exact_labels``).
 
+With ``dense="sgbm"`` the white-light pair of each frame also gives a dense point cloud aligned to the
+frame's triangulated markers (``stereo.dense``): ``OUT/dense/<frame:06d>.exr`` (depth, mm) and ``.ply``.
+
 Output (DESIGN.md section 6; ``docs/formats.md``): ``OUT/frames/<frame:06d>.json`` per frame,
 ``OUT/summary.json`` and ``OUT/preview.png`` (the last frame's matches drawn on both views). Every input is
 read and checked before anything is written; each file is written atomically. A frame with fewer than
@@ -72,7 +75,7 @@ def _frames(source: Path) -> tuple[list[str], list[np.ndarray]]:
 
 
 def _inputs(dataset: Path | None, sequence: str | None, calibration: Path | None, left: Path | None,
-            right: Path | None):
+            right: Path | None, kind: str = "uv"):
     if dataset is not None:
         seqs = sorted(p.name for p in (Path(dataset) / "sequences").iterdir() if p.is_dir()) \
             if (Path(dataset) / "sequences").is_dir() else []
@@ -81,8 +84,8 @@ def _inputs(dataset: Path | None, sequence: str | None, calibration: Path | None
             raise PerceptionInputError(dataset, f"no sequence {seq!r}" if seqs else "not a dataset folder (no sequences/)",
                                        "pick one with --sequence" if seqs else "pass a folder written by `transtac-sim generate`")
         calib = load_calibration(Path(dataset) / "calibration.json")
-        names_l, frames_l = zip(*[(r.name, read_color_image(r.path)) for r in find_images(dataset, f"{seq}/*/left_uv.png")], strict=True)
-        names_r, frames_r = zip(*[(r.name, read_color_image(r.path)) for r in find_images(dataset, f"{seq}/*/right_uv.png")], strict=True)
+        names_l, frames_l = zip(*[(r.name, read_color_image(r.path)) for r in find_images(dataset, f"{seq}/*/left_{kind}.png")], strict=True)
+        names_r, frames_r = zip(*[(r.name, read_color_image(r.path)) for r in find_images(dataset, f"{seq}/*/right_{kind}.png")], strict=True)
         names_l, frames_l, names_r, frames_r = list(names_l), list(frames_l), list(names_r), list(frames_r)
     else:
         if calibration is None or left is None or right is None:
@@ -103,11 +106,23 @@ def _inputs(dataset: Path | None, sequence: str | None, calibration: Path | None
 def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None = None,
                 calibration: Path | None = None, left: Path | None = None, right: Path | None = None,
                 matcher: str = "delaunay", detector: str = "learned", model: Path | None = None,
-                stack: Path | None = None, device: str = "auto",
+                stack: Path | None = None, device: str = "auto", dense: str = "none",
+                left_white: Path | None = None, right_white: Path | None = None,
                 progress: Callable[[int, int], None] | None = None) -> ReconstructReport:
     if matcher not in (*MATCHERS, "farneback", "sgbm"):
         raise ValueError(f"unknown matcher {matcher!r} ({', '.join([*MATCHERS, 'farneback', 'sgbm'])})")
+    if dense not in ("none", "sgbm"):
+        raise ValueError(f"unknown dense method {dense!r} (none or sgbm)")
     calib, names_l, frames_l, names_r, frames_r = _inputs(dataset, sequence, calibration, left, right)
+    whites = None
+    if dense != "none":
+        if dataset is None and (left_white is None or right_white is None):
+            raise PerceptionInputError("reconstruct", "--dense needs the white-light images",
+                                       "pass --left-white and --right-white (or a dataset with white images)")
+        whites = _inputs(dataset, sequence, calibration, left_white, right_white, kind="white")
+        if len(whites[2]) != len(frames_l):
+            raise PerceptionInputError(left_white or dataset, f"{len(whites[2])} white-light frames but {len(frames_l)} UV frames",
+                                       "give the white-light images of the same frames")
     flat = load_flat_stack(stack) if stack else None
     detect, _ = make_detector(detector, model, device)
     n = len(frames_l)
@@ -139,7 +154,10 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
         t3 = time.perf_counter()
         record["matches"] = [{"left": int(i), "right": int(j), "track_id": int(tracks.track_ids[f][i]),
                               "xyz_mm": np.round(p, 4).tolist()} for (i, j), p in zip(pairs, xyz, strict=True)]
-        record["seconds"] = {"detect": t_detect, "track": t_track, "match": t2 - t1, "triangulate": t3 - t2, "dense": 0.0}
+        if whites is not None:
+            record["dense"] = _fuse(calib, whites[2][f], whites[4][f], lu, ru, xyz, out / "dense" / f"{f:06d}")
+        record["seconds"] = {"detect": t_detect, "track": t_track, "match": t2 - t1, "triangulate": t3 - t2,
+                             "dense": time.perf_counter() - t3}
         write_json(out / "frames" / f"{f:06d}.json", record)
         total += len(pairs)
         if progress:
@@ -151,6 +169,25 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
                                       "detector": detector, "triangulation": report.triangulation,
                                       "seconds_per_frame": report.seconds})
     return report
+
+
+def _fuse(calib, left_white: np.ndarray, right_white: np.ndarray, left_uv: np.ndarray, right_uv: np.ndarray,
+          xyz: np.ndarray, stem: Path) -> dict:
+    """Dense SGBM points of the white pair aligned to the markers; writes ``stem``.exr and .ply."""
+    from transtac_sim.perception.stereo.dense import align_to_markers, dense_points, write_depth_exr, write_ply
+
+    if len(xyz) < 3:
+        return {"aligned": False, "reason": "fewer than 3 triangulated markers"}
+    d_ref = float(np.median(calib.rectified(left_uv, "left")[:, 0] - calib.rectified(right_uv, "right")[:, 0]))
+    points = dense_points(calib, left_white, right_white, d_ref)
+    a = align_to_markers(points, calib, left_uv, xyz)
+    if a is None:
+        return {"aligned": False, "reason": "no similarity found (fewer than 3 consistent marker anchors)"}
+    fused = a.apply(points.xyz_mm.reshape(-1, 3)).reshape(points.xyz_mm.shape)
+    write_depth_exr(stem.with_suffix(".exr"), np.where(points.valid, fused[:, :, 2], np.inf))
+    write_ply(stem.with_suffix(".ply"), fused[points.valid])
+    return {"aligned": True, "scale": a.scale, "anchors": a.pairs, "inliers": a.inliers, "rms_mm": a.rms_mm,
+            "valid_fraction": float(points.valid.mean())}
 
 
 def _preview(left: np.ndarray, right: np.ndarray, uv_l: np.ndarray, uv_r: np.ndarray, pairs: np.ndarray,

@@ -28,8 +28,13 @@ BRIGHT_QUANTILE = 0.999
 def normalise(image_bgr: np.ndarray) -> np.ndarray:
     """(3, H, W) float32: RGB in [0, ~1] scaled by the image's bright level (99.9th percentile of the
     brightest channel), so that the UV light level and the exposure do not matter."""
-    bright = max(bright_level(image_bgr.max(axis=2)), 4.0)
-    return np.ascontiguousarray(image_bgr[:, :, ::-1].transpose(2, 0, 1), dtype=np.float32) * np.float32(1.0 / bright)
+    import cv2
+
+    b, g, r = cv2.split(image_bgr)
+    bright = max(bright_level(cv2.max(cv2.max(b, g), r)), 4.0)
+    out = np.stack([r, g, b]).astype(np.float32)
+    out *= np.float32(1.0 / bright)
+    return out
 
 
 def bright_level(gray_u8: np.ndarray, quantile: float = BRIGHT_QUANTILE) -> float:
