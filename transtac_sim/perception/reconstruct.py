@@ -174,7 +174,12 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
 def _fuse(calib, left_white: np.ndarray, right_white: np.ndarray, left_uv: np.ndarray, right_uv: np.ndarray,
           xyz: np.ndarray, stem: Path) -> dict:
     """Dense SGBM points of the white pair aligned to the markers; writes ``stem``.exr and .ply."""
-    from transtac_sim.perception.stereo.dense import align_to_markers, dense_points, write_depth_exr, write_ply
+    from transtac_sim.perception.stereo.dense import (
+        align_to_markers,
+        dense_points,
+        write_depth_exr,
+        write_ply,
+    )
 
     if len(xyz) < 3:
         return {"aligned": False, "reason": "fewer than 3 triangulated markers"}
