@@ -4,21 +4,20 @@ Each frame moves the indenters from the previous poses to new ones. The solver m
 E(u) = E_el(u) + E_contact(u) (see elasticity.py, contact.py) over the displacement u (mm) of a P1 or P2
 tet mesh, with u = 0 on the fixed components (default: every vertex with z <= tol, the bonded face).
 
-Newton: the Hessian (clamped stable Neo-Hookean + penalty + friction) is solved for a step, an Armijo
-back-tracking line search on E accepts it; convergence when the full (undamped) Newton step's largest
-component is below ``newton_tol_mm`` (a step shortened by the line search says nothing about convergence). Friction lags the normal pressure and tangent plane: after a Newton solve the lag is
-updated and Newton runs again until the largest change of the lagged displacement is below the
-tolerance (``friction_lag_iterations`` at most). A step that does not converge, makes any det F <= 0
-or leaves a penetration above ``penetration_tol_mm`` (after raising the contact stiffness up to
-``max_stiffness_raises`` times) is retried in halves of the pose increment
-(adaptive load sub-stepping, ``max_substep_halvings``), starting again from the last good state; past
-that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried. Frames are warm
-started from the previous one; nothing half-solved is ever returned.
+This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs), the assembly of E, its
+gradient and Hessian, and the frame API. The Newton iteration of one (sub)step is in newton.py: warm start
+from the extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a
+line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
+A step that does not converge or leaves a penetration above ``penetration_tol_mm`` is retried in halves of
+the pose increment (adaptive load sub-stepping, ``max_substep_halvings``), starting again from the last good
+state; past that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried. Nothing
+half-solved is ever returned.
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +30,7 @@ from transtac_sim.physics import contact, elasticity
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
+from transtac_sim.physics.newton import NewtonSteps
 
 
 class SolverDidNotConverge(RuntimeError):
@@ -55,7 +55,7 @@ class SolverSettings:
     penetration_tol_mm: float = 0.02  # stated bound on residual interpenetration at convergence
     max_stiffness_raises: int = 3  # per step: contact stiffness raised while the penetration is above the bound
     slip_eps_mm: float = 1.0e-2  # friction smoothing: slips below this are elastic sticking
-    friction_lag_iterations: int = 4
+    friction_lag_iterations: int = 4  # per step: friction's lag moved to the current u at most this often
     contact_quadrature_order: int | None = None  # None: 2 * degree
     fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
 
@@ -70,6 +70,10 @@ class SolverRecord:
     substeps: int
     max_penetration_mm: float = 0.0
     linear_iterations: int = 0
+    backtracks: int = 0  # line-search halvings, all (sub)steps of the frame
+    stiffness_raises: int = 0  # contact stiffness raised during the frame (kept for the next ones)
+    warm_starts: int = 0  # (sub)steps started from the extrapolated increment rather than the last state
+    lag_updates: int = 0  # friction's lag moved inside Newton, all (sub)steps of the frame
 
 
 @dataclass
@@ -89,7 +93,7 @@ def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return P
 
 
-class QuasiStaticSolver:
+class QuasiStaticSolver(NewtonSteps):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
@@ -162,6 +166,8 @@ class QuasiStaticSolver:
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
         self._poses: list[np.ndarray] | None = None
+        self._increment: tuple[wp.array, np.ndarray, float] | None = None  # last (du, pose step, penetration)
+        self.stats: Counter = Counter()  # per frame: backtracks, stiffness_raises, warm_starts, lag_updates
         self.frame_index = 0
 
     # -- set-up helpers -------------------------------------------------------------------------
@@ -290,89 +296,6 @@ class QuasiStaticSolver:
         a[self._fixed_nodes] = 0.0
         return float(np.linalg.norm(a))
 
-    # -- Newton -----------------------------------------------------------------------------------
-    def _newton(self, ind) -> tuple[bool, int, str]:
-        tol = self.settings.newton_tol_mm
-        for it in range(1, self.settings.max_newton_iterations + 1):
-            g = self._gradient(ind)
-            g_np = g.numpy()
-            g_np[self._fixed_nodes] = 0.0
-            if not np.any(g_np):  # e.g. nothing touches yet: already at equilibrium
-                return True, it, ""
-            energy = self._energy(self.u, ind)
-            for geometric in (1.0, 0.0):
-                H = self._hessian(ind, geometric)
-                rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
-                du = self._linear.solve(H, rhs)
-                du_np = du.numpy()
-                slope = float(np.sum(du_np * g_np))
-                step_max = float(np.max(np.abs(du_np)))
-                if np.all(np.isfinite(du_np)) and step_max < tol:  # converged; at a round-off gradient (e.g.
-                    return True, it, ""  # GPU atomics where nothing touches) the sign of the slope means nothing
-                if np.all(np.isfinite(du_np)) and slope < 0.0:
-                    break
-            else:
-                return False, it, "Newton direction is not a descent direction"
-            alpha = 1.0
-            while alpha > 1e-6:
-                wp.copy(self._u_try.dof_values, self.u.dof_values)
-                fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=alpha)
-                e_try = self._energy(self._u_try, ind)
-                if np.isfinite(e_try) and e_try <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
-                    break
-                alpha *= 0.5
-            else:
-                if step_max < 100.0 * tol:  # energy differences below round-off: accept the tiny step
-                    fem.linalg.array_axpy(x=du, y=self.u.dof_values, alpha=1.0)
-                    return True, it, ""
-                return False, it, "line search failed"
-            wp.copy(self.u.dof_values, self._u_try.dof_values)
-        return False, self.settings.max_newton_iterations, "Newton iteration limit reached"
-
-    def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str]:
-        ind = self._indenter_struct(poses, prev_poses)
-        wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
-        # first lag: the contact of the last converged state, where it was (with the previous poses)
-        self._update_lag(self._indenter_struct(prev_poses, prev_poses))
-        has_friction = any(i.friction > 0 for i in self.indenters)
-        iterations = 0
-        lags = self.settings.friction_lag_iterations if has_friction else 1
-        for lag in range(lags):
-            ok, it, why = self._newton(ind)
-            iterations += it
-            if not ok:
-                return False, iterations, why
-            change = np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy()))
-            wp.copy(self.u_lag.dof_values, self.u.dof_values)
-            self._update_lag(ind)
-            if change < self.settings.newton_tol_mm * 10.0 or lag == lags - 1:
-                break
-        if has_friction:  # final state with the converged lag (no-op if the lag did not change)
-            ok, it, why = self._newton(ind)
-            iterations += it
-            if not ok:
-                return False, iterations, why
-        self._last_ind = ind
-        return True, iterations, ""
-
-    def _stiffen_contact(self, target, prev) -> tuple[bool, int, str, float]:
-        """Penalty penetration is about p / k: while a converged step leaves more than penetration_tol_mm,
-        raise k by 1.5 x penetration / tolerance (at most 10x at a time, ``max_stiffness_raises`` times) and
-        solve the step again from where it is. The raised k is kept for the following frames. Returns
-        (converged, Newton iterations, why not, the penetration (mm) of the last converged solve)."""
-        ok, iterations, why = True, 0, ""
-        pen = self._max_penetration(self._last_ind)
-        for _ in range(self.settings.max_stiffness_raises):
-            if pen <= self.settings.penetration_tol_mm:
-                break
-            self.contact_stiffness *= min(10.0, 1.5 * pen / self.settings.penetration_tol_mm)
-            ok, it, why = self._solve_step(target, prev)
-            iterations += it
-            if not ok:
-                break
-            pen = self._max_penetration(self._last_ind)
-        return ok, iterations, why, pen
-
     def _min_det(self, u) -> float:
         J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
         fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
@@ -406,6 +329,7 @@ class QuasiStaticSolver:
                     f"{self.vertices_mm[:, 2].max():.4g} mm"
                 )
         self._poses = poses
+        self._increment = None
         self.frame_index = 0
 
     def _check_poses(self, poses) -> list[np.ndarray]:
@@ -421,6 +345,7 @@ class QuasiStaticSolver:
         poses = self._check_poses(poses)
         t0 = time.perf_counter()
         frame = self.frame_index
+        self.stats = Counter()
         wp.copy(self.u_prev.dof_values, self.u.dof_values)
         u_frame_start = wp.clone(self.u.dof_values)
         tried = []
@@ -433,17 +358,10 @@ class QuasiStaticSolver:
             for k in range(1, n_sub + 1):
                 target = [_interpolate_pose(A, B, k / n_sub) for A, B in zip(self._poses, poses, strict=False)]
                 wp.copy(self.u_prev.dof_values, self.u.dof_values)
-                ok, it, why = self._solve_step(target, prev)
+                ok, it, why, pen = self._solve_step(target, prev)
                 total_iterations += it
-                if ok:
-                    ok, it, why, pen = self._stiffen_contact(target, prev)
-                    total_iterations += it
-                if ok:
-                    min_det = self._min_det(self.u)
-                    if not np.isfinite(min_det) or min_det <= 0.0:
-                        ok, why = False, f"det F = {min_det:.3g} <= 0 (inverted element)"
-                    elif pen > self.settings.penetration_tol_mm:
-                        ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
+                if ok and pen > self.settings.penetration_tol_mm:
+                    ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
                 if not ok:
                     tried.append(f"{n_sub} sub-step(s): failed in sub-step {k} ({why})")
                     break
@@ -471,11 +389,15 @@ class QuasiStaticSolver:
             converged=True,
             iterations=total_iterations,
             residual=self._free_norm(g),
-            min_det_f=min_det,
+            min_det_f=self._min_det(self.u),  # > 0: no step that inverts an element is ever accepted
             seconds=time.perf_counter() - t0,
             substeps=n_sub,
             max_penetration_mm=pen,
             linear_iterations=self._linear.last_iterations,
+            backtracks=self.stats["backtracks"],
+            stiffness_raises=self.stats["stiffness_raises"],
+            warm_starts=self.stats["warm_starts"],
+            lag_updates=self.stats["lag_updates"],
         )
         self._poses = poses
         self.frame_index += 1
@@ -484,12 +406,12 @@ class QuasiStaticSolver:
 
     def snapshot(self):
         """Opaque copy of the solver state (to try a frame and go back, e.g. press-to-force)."""
-        return wp.clone(self.u.dof_values), [P.copy() for P in self._poses], self.frame_index
+        return wp.clone(self.u.dof_values), [P.copy() for P in self._poses], self.frame_index, self._increment
 
     def restore(self, state) -> None:
-        dofs, poses, frame = state
+        dofs, poses, frame, increment = state
         wp.copy(self.u.dof_values, dofs)
-        self._poses, self.frame_index = [P.copy() for P in poses], frame
+        self._poses, self.frame_index, self._increment = [P.copy() for P in poses], frame, increment
 
     @property
     def poses(self) -> list[np.ndarray]:

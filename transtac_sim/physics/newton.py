@@ -1,0 +1,191 @@
+"""Newton for one quasi-static (sub)step, as a mixin of ``QuasiStaticSolver`` (solver.py).
+
+Where the iterations of the earlier solver went (tiny press fixture, friction 0.5: 19-23 per frame) and what
+replaced each source (scripts/fem_frame_timing.py, BENCHMARKS.md ``fem_newton_iterations_cpu``):
+
+- Friction's lag (normal pressure and tangent plane at u_lag) was an outer loop: Newton to convergence, move
+  the lag, Newton again (5 Newton solves per step, each ending with an assembly and solve that only
+  confirmed convergence). Here the lag is moved inside Newton as soon as Newton is closer to the current
+  lag's solution than the lag is to u (``_move_lag``): an inexact fixed point on the lag.
+- Convergence needed a full Newton step below ``newton_tol_mm``, i.e. one more Hessian assembly and solve
+  after the last real step. After a full step (alpha = 1) the next step is now estimated from the new
+  gradient with the last Hessian (``LinearSolver.solve_last``: CG preconditioned with the kept factorisation).
+- Each (sub)step started from the last state. It now starts from the last increment scaled to this step's
+  pose increment when that lowers E and keeps det F > 0 (``_warm_start``); on a slide its contact also gives
+  friction's first lag.
+- The contact stiffness raise re-solved the whole step; it now happens at convergence inside Newton and
+  Newton goes on from there (``_raise_stiffness``).
+- The line search accepted steps that invert an element and the step then failed after the fact (and was
+  sub-stepped); it now rejects them (det F <= 0 at any quadrature point of ``_min_det``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+import warp.fem as fem
+from scipy.spatial.transform import Rotation
+
+
+class NewtonSteps:
+    """Newton's method for ``QuasiStaticSolver`` (which provides the fields, assembly and linear solver)."""
+
+    def _newton(self, ind) -> tuple[bool, int, str, float]:
+        """Minimises E over u, from self.u, for one (sub)step: (converged, Newton iterations, why not, the
+        largest penetration (mm) at the solution).
+
+        Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag
+        move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
+        when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
+        was moved ``friction_lag_iterations`` times): after a full step (alpha = 1) that step is estimated from
+        the new gradient with the last Hessian (CG preconditioned with its kept factorisation: no assembly, no
+        factorisation), otherwise it is the full Newton step itself. At convergence a penetration above
+        ``penetration_tol_mm`` raises the contact stiffness (``_raise_stiffness``) and Newton goes on from
+        there. The Armijo back-tracking line search on E never accepts a step that makes any det F <= 0.
+        Iterations count Hessian assemblies."""
+        s = self.settings
+        tol = s.newton_tol_mm
+        friction = any(i.friction > 0 for i in self.indenters)
+        iterations, raises, lags, full_step, inverted = 0, 0, 0, False, False
+        while True:
+            g_np = self._gradient(ind).numpy()
+            g_np[self._fixed_nodes] = 0.0
+            if not np.any(g_np):  # e.g. nothing touches yet: already at equilibrium
+                return True, iterations, "", 0.0
+            estimate = self._linear.solve_last(-g_np) if full_step else None
+            remaining = float(np.max(np.abs(estimate))) if estimate is not None else np.inf
+            if friction and lags < s.friction_lag_iterations and self._move_lag(ind, remaining):
+                lags += 1
+                continue
+            if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
+                wp.copy(self._u_try.dof_values, self.u.dof_values)
+                fem.linalg.array_axpy(x=wp.array(estimate, dtype=wp.vec3d, device=self.device),
+                                      y=self._u_try.dof_values, alpha=1.0)
+                if self._min_det(self._u_try) > 0.0:
+                    wp.copy(self.u.dof_values, self._u_try.dof_values)
+                pen = self._raise_stiffness(ind, raises)
+                if pen is not None:
+                    return True, iterations, "", pen
+                raises, full_step = raises + 1, False
+                continue
+            if iterations == s.max_newton_iterations:
+                why = " (line-search steps cut short by inverted elements, det F <= 0)" if inverted else ""
+                return False, iterations, "Newton iteration limit reached" + why, 0.0
+            iterations += 1
+            energy = self._energy(self.u, ind)
+            for geometric in (1.0, 0.0):
+                du = self._linear.solve(self._hessian(ind, geometric), wp.array(-g_np, dtype=wp.vec3d, device=self.device))
+                du_np = du.numpy()
+                slope = float(np.sum(du_np * g_np))
+                step_max = float(np.max(np.abs(du_np)))
+                if np.all(np.isfinite(du_np)) and (step_max < tol or slope < 0.0):
+                    break  # at a round-off gradient (e.g. GPU atomics where nothing touches) the slope means nothing
+            else:
+                return False, iterations, "Newton direction is not a descent direction", 0.0
+            alpha = 1.0 if step_max >= tol else 0.0
+            while alpha > 1e-6:
+                wp.copy(self._u_try.dof_values, self.u.dof_values)
+                fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=alpha)
+                e_try = self._energy(self._u_try, ind)
+                if np.isfinite(e_try) and e_try <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
+                    if self._min_det(self._u_try) > 0.0:
+                        break
+                    inverted = True
+                alpha *= 0.5
+                self.stats["backtracks"] += 1
+            else:  # converged (a full step below the tolerance) or, below 100 x tol, E differs by round-off only
+                wp.copy(self._u_try.dof_values, self.u.dof_values)
+                fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=1.0)
+                if step_max >= 100.0 * tol or not self._min_det(self._u_try) > 0.0:
+                    why = "line search failed" + (" (every step tried made an inverted element, det F <= 0)"
+                                                  if inverted else "")
+                    return False, iterations, why, 0.0
+                wp.copy(self.u.dof_values, self._u_try.dof_values)
+                if friction and lags < s.friction_lag_iterations and self._move_lag(ind, 0.0):
+                    lags, full_step = lags + 1, True
+                    continue
+                pen = self._raise_stiffness(ind, raises)
+                if pen is not None:
+                    return True, iterations, "", pen
+                raises, full_step = raises + 1, False
+                continue
+            wp.copy(self.u.dof_values, self._u_try.dof_values)
+            full_step = alpha == 1.0
+
+    def _move_lag(self, ind, remaining: float) -> bool:
+        """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
+        u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, 0.1 x |u - u_lag|), and
+        |u - u_lag| >= 10 newton_tol_mm. True if moved (an inexact fixed point on the lag: each lag is solved
+        only as far as the next one makes worth it, instead of to the tolerance)."""
+        change = float(np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy())))
+        tol = self.settings.newton_tol_mm
+        if change < 10.0 * tol or remaining >= max(tol, 0.1 * change):
+            return False
+        wp.copy(self.u_lag.dof_values, self.u.dof_values)
+        self._update_lag(ind)
+        self.stats["lag_updates"] += 1
+        return True
+
+    def _raise_stiffness(self, ind, raises: int) -> float | None:
+        """At a converged state: its largest penetration (mm), or None after raising the contact stiffness.
+
+        Penalty penetration is about p / k: above ``penetration_tol_mm``, k is raised by 1.5 x penetration /
+        tolerance (at most 10x at a time, ``max_stiffness_raises`` times per step) and kept for the following
+        frames; Newton goes on from the current state."""
+        pen = self._max_penetration(ind)
+        if pen <= self.settings.penetration_tol_mm or raises >= self.settings.max_stiffness_raises:
+            return pen
+        self.contact_stiffness *= min(10.0, 1.5 * pen / self.settings.penetration_tol_mm)
+        ind.stiffness = self.contact_stiffness
+        self._linear.forget()
+        self.stats["stiffness_raises"] += 1
+        return None
+
+    def _pose_step(self, prev_poses, poses) -> np.ndarray:
+        """The indenters' pose increment as one vector (mm): translations, and rotation vectors times radius."""
+        parts = []
+        for ind, A, B in zip(self.indenters, prev_poses, poses, strict=True):
+            turn = Rotation.from_matrix(B[:3, :3] @ A[:3, :3].T).as_rotvec() * ind.bounding_radius_mm
+            parts += [B[:3, 3] - A[:3, 3], turn]
+        return np.concatenate(parts)
+
+    def _warm_start(self, ind, step: np.ndarray) -> bool:
+        """u = u_prev + s du_last: the last converged increment scaled to this step's pose increment
+        (s = <step, step_last> / |step_last|^2, clipped to [0, 1]), if that keeps det F > 0 and lowers E;
+        else u = u_prev. On a steady press or slide this starts Newton next to the solution. True if it did, and
+        the largest penetration there is within 2x the last step's plus ``penetration_tol_mm`` (a guess whose
+        contact can serve as friction's first lag)."""
+        wp.copy(self.u.dof_values, self.u_prev.dof_values)
+        if self._increment is None:
+            return False
+        du_last, step_last, pen_last = self._increment
+        norm2 = float(np.dot(step_last, step_last))
+        scale = float(np.clip(np.dot(step, step_last) / norm2, 0.0, 1.0)) if norm2 > 0.0 else 0.0
+        if scale == 0.0:
+            return False
+        wp.copy(self._u_try.dof_values, self.u_prev.dof_values)
+        fem.linalg.array_axpy(x=du_last, y=self._u_try.dof_values, alpha=scale)
+        if self._min_det(self._u_try) > 0.0 and self._energy(self._u_try, ind) < self._energy(self.u, ind):
+            wp.copy(self.u.dof_values, self._u_try.dof_values)
+            self.stats["warm_starts"] += 1
+            return self._max_penetration(ind) <= 2.0 * pen_last + self.settings.penetration_tol_mm
+        return False
+
+    def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str, float]:
+        """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result."""
+        ind = self._indenter_struct(poses, prev_poses)
+        wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
+        # first lag: the contact of the last converged state, where it was (with the previous poses), or that of
+        # the warm start if its contact is about as deep (on a slide it is where the contact has moved to)
+        self._update_lag(self._indenter_struct(prev_poses, prev_poses))
+        step = self._pose_step(prev_poses, poses)
+        if self._warm_start(ind, step):
+            wp.copy(self.u_lag.dof_values, self.u.dof_values)
+            self._update_lag(ind)
+        ok, iterations, why, pen = self._newton(ind)
+        self._last_ind = ind
+        if ok:
+            du = wp.clone(self.u.dof_values)
+            fem.linalg.array_axpy(x=self.u_prev.dof_values, y=du, alpha=-1.0)
+            self._increment = (du, step, pen)
+        return ok, iterations, why, pen
