@@ -1,7 +1,11 @@
 """Marker detection on the held-out sets, per condition, for the blob baseline and the learned detector
 (with and without the correlation term, with and without the centroid refinement), and detection speed.
 
-    .venv/bin/python scripts/bench_detection.py [--models MODEL.pt ...]   (default: the shipped model and out/models/markernet_corr.pt)
+    .venv/bin/python scripts/bench_detection.py [--models MODEL.pt ...]
+
+Default models: the shipped one (stride-16 context level, no correlation term) and, where they exist, the
+variants of README's "Detection and tracking" in out/models/: markernet_context_corr (context + correlation
+term), markernet_nocorr and markernet_corr (without the context level, without and with the term).
 
 Held-out data (scripts/make_perception_datasets.sh heldout): datasets/perception_heldout, track_roll and
 track_large; their marker layouts, indenters and light differ from the training scenes'. Truth: the visible
@@ -101,14 +105,15 @@ def _images(datasets: list[Path]):
                 yield ["leak"], leak, li.truth.uv, None
 
 
-def main(models: list[Path] = typer.Option([DEFAULT_MODEL, REPO / "out/models/markernet_corr.pt"]),
+def main(models: list[Path] = typer.Option([DEFAULT_MODEL, REPO / "out/models/markernet_context_corr.pt",
+                                            REPO / "out/models/markernet_nocorr.pt", REPO / "out/models/markernet_corr.pt"]),
          datasets_root: Path = typer.Option(REPO / "datasets"), write: bool = typer.Option(True),
          figure: Path = typer.Option(REPO / "docs" / "figures" / "detection_heldout.png")) -> None:
     datasets = [datasets_root / n for n in HELDOUT if (datasets_root / n).is_dir()]
     methods: dict[str, object] = {"blob": lambda im: detect_blobs(im)}
-    for m in models:
-        tag = "learned" + (" + corr" if "corr" in m.stem and "nocorr" not in m.stem else "")
-        for refine in (True, False):
+    for m in [m for m in models if m.is_file()]:
+        tag = "learned (shipped)" if m == DEFAULT_MODEL else f"learned: {m.stem.removeprefix('markernet_')}"
+        for refine in (True, False) if m == DEFAULT_MODEL else (True,):
             det = LearnedDetector(m, device="cpu", refine=refine)
             methods[f"{tag}{'' if refine else ' (offset head only)'}"] = (lambda d: lambda im: d.detect([im])[0])(det)
     tallies = {name: {c: DetectionTally() for c in CONDITIONS} for name in methods}

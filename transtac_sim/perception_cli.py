@@ -53,6 +53,7 @@ def register(app: typer.Typer) -> None:
                            crop: int = typer.Option(128, min=32, help="training crop size, px (multiple of 8)"),
                            width: int = typer.Option(16, min=4, help="network width (channels at stride 2)"),
                            correlation_weight: float = typer.Option(0.0, min=0.0, help="lambda of the correlation term"),
+                           context: bool = typer.Option(False, help="add MarkerNet's stride-16 context level"),
                            learning_rate: float = typer.Option(3e-3, min=0.0),
                            device: str = typer.Option("auto", help="auto, cpu or cuda"),
                            eval_every: int = typer.Option(500, min=1), seed: int = typer.Option(0)) -> None:
@@ -62,7 +63,8 @@ def register(app: typer.Typer) -> None:
 
         if crop % 8:
             _fail(ValueError(f"--crop {crop}: must be a multiple of 8"))
-        cfg = TrainConfig(steps=steps, batch=batch, crop_px=crop, width=width, correlation_weight=correlation_weight,
+        cfg = TrainConfig(steps=steps, batch=batch, crop_px=crop, width=width, context=context,
+                          correlation_weight=correlation_weight,
                           learning_rate=learning_rate, device=device, eval_every=eval_every, seed=seed)
         command = "transtac-sim " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         recall = ["-"]

@@ -157,7 +157,7 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
         if whites is not None:
             record["dense"] = _fuse(calib, whites[2][f], whites[4][f], lu, ru, xyz, out / "dense" / f"{f:06d}")
         record["seconds"] = {"detect": t_detect, "track": t_track, "match": t2 - t1, "triangulate": t3 - t2,
-                             "dense": time.perf_counter() - t3}
+                             "dense": time.perf_counter() - t3 if whites is not None else 0.0}
         write_json(out / "frames" / f"{f:06d}.json", record)
         total += len(pairs)
         if progress:

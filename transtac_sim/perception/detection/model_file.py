@@ -26,7 +26,7 @@ DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "markernet_default.
 
 def save_model(path: Path, net: MarkerNet, image_sizes: list[tuple[int, int]], provenance: dict) -> Path:
     """Write ``path`` (.pt) and its ONNX export ``path.with_suffix('.onnx')``."""
-    payload = {"format": FORMAT, "version": VERSION, "width": net.width,
+    payload = {"format": FORMAT, "version": VERSION, "width": net.width, "context": net.context,
                "image_sizes": [list(s) for s in image_sizes], "provenance": provenance,
                "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()}}
     atomic_write(Path(path), lambda f: torch.save(payload, f))
@@ -76,7 +76,7 @@ def load_model(path: Path) -> tuple[MarkerNet, dict]:
     if payload.get("version") != VERSION:
         raise PerceptionInputError(path, f"detector model version {payload.get('version')}, this code reads {VERSION}",
                                    "retrain it with this version")
-    net = MarkerNet(width=int(payload["width"]))
+    net = MarkerNet(width=int(payload["width"]), context=bool(payload.get("context", False)))
     net.load_state_dict(payload["state_dict"])
     meta = {k: v for k, v in payload.items() if k != "state_dict"}
     meta["image_sizes"] = [tuple(s) for s in meta["image_sizes"]]

@@ -1,7 +1,7 @@
 """MarkerNet: a compact single-stage, anchor-free, CenterNet-style marker detector (PyTorch).
 
-Input: a 3-channel image normalised by ``normalise`` (H, W multiples of 8). A small U-Net backbone
-(strides 2, 4, 8; on the way up each coarser map is reduced by a 1x1 convolution, upsampled and added to
+Input: a 3-channel image normalised by ``normalise`` (H, W multiples of 8, of 16 with ``context``). A
+small U-Net backbone (strides 2, 4, 8, and 16 with ``context``; on the way up each coarser map is reduced by a 1x1 convolution, upsampled and added to
 the skip connection of the finer one, so fine detail survives) gives a feature map F at stride 2
 (``STRIDE``), and three 1x1 heads read it:
     heatmap  Y (1 channel, sigmoid): a Gaussian bump at each marker centre, trained with the focal loss
@@ -50,13 +50,16 @@ def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 
 class MarkerNet(nn.Module):
-    def __init__(self, width: int = 16) -> None:
+    def __init__(self, width: int = 16, context: bool = False) -> None:
         super().__init__()
         w = width
-        self.width = width
+        self.width, self.context = width, context
         self.stem = nn.Sequential(_block(3, w, 2), _block(w, w))  # stride 2
         self.down1 = nn.Sequential(_block(w, 2 * w, 2), _block(2 * w, 2 * w))  # stride 4
         self.down2 = nn.Sequential(_block(2 * w, 4 * w, 2), _block(4 * w, 4 * w), _block(4 * w, 4 * w))  # 8
+        if context:  # a stride-16 level added back into stride 8: a wider view of the marker pattern
+            self.down3 = nn.Sequential(_block(4 * w, 4 * w, 2), _block(4 * w, 4 * w), _block(4 * w, 4 * w))
+            self.lateral16 = nn.Conv2d(4 * w, 4 * w, 1)
         self.lateral8 = nn.Conv2d(4 * w, 2 * w, 1)
         self.up1 = _block(2 * w, 2 * w)  # stride 4
         self.lateral4 = nn.Conv2d(2 * w, w, 1)
@@ -70,6 +73,8 @@ class MarkerNet(nn.Module):
         s2 = self.stem(x)
         s4 = self.down1(s2)
         s8 = self.down2(s4)
+        if self.context:
+            s8 = s8 + fn.interpolate(self.lateral16(self.down3(s8)), scale_factor=2.0, mode="nearest")
         u4 = self.up1(fn.interpolate(self.lateral8(s8), scale_factor=2.0, mode="nearest") + s4)
         f = self.up0(fn.interpolate(self.lateral4(u4), scale_factor=2.0, mode="nearest") + s2)
         return self.heatmap(f), self.offset(f), self.size(f), f

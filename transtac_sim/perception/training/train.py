@@ -39,6 +39,7 @@ class TrainConfig:
     crop_px: int = 128
     learning_rate: float = 3e-3
     width: int = 16
+    context: bool = False  # the stride-16 level of MarkerNet
     correlation_weight: float = 0.0  # lambda_corr; 0 leaves the term out
     device: str = "auto"
     amp: bool = True  # mixed precision (used on CUDA only)
@@ -123,7 +124,7 @@ def train_detector(datasets: list[Path], out: Path, cfg: TrainConfig = TrainConf
     train, val = load_samples([Path(d) for d in datasets], cfg.max_images)
     whites = [s.white for s in train if s.white is not None]
     sizes = sorted({(s.image.shape[1], s.image.shape[0]) for s in train + val})
-    net = MarkerNet(cfg.width).to(device).train()
+    net = MarkerNet(cfg.width, cfg.context).to(device).train()
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.learning_rate, weight_decay=1e-4)
     warmup = max(1, cfg.steps // 20)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: min((k + 1) / warmup, 0.5 * (1 + np.cos(np.pi * k / cfg.steps))))
