@@ -15,6 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from transtac_sim.perception.detection import Detections
 from transtac_sim.perception.detection.blob import detect_blobs
 from transtac_sim.perception.images import find_images, read_color_image
@@ -34,15 +36,19 @@ class DetectReport:
 
 
 def make_detector(method: str, model: Path | None = None, device: str = "auto", refine: bool = True,
-                  ) -> tuple[Callable[[list], list[Detections]], str | None]:
-    """A function detecting markers in a batch of images, and the model path it uses (None for blob)."""
+                  images: list[tuple[str, np.ndarray]] = ()) -> tuple[Callable[[list], list[Detections]], str | None]:
+    """A function detecting markers in a batch of images, and the model path it uses (None for blob).
+    ``images`` (name, image) are checked first: a size the learned model was not trained on raises
+    PerceptionInputError naming the image."""
     if method == "blob":
-        return (lambda images: [detect_blobs(im) for im in images]), None
+        return (lambda batch: [detect_blobs(im) for im in batch]), None
     if method != "learned":
         raise ValueError(f"unknown detection method {method!r} (learned or blob)")
     from transtac_sim.perception.detection.runtime import LearnedDetector
 
     det = LearnedDetector(model, device=device, refine=refine)
+    for name, image in images:
+        det.check_size(image, name)
     return det.detect, str(det.model_path)
 
 
@@ -53,10 +59,8 @@ def detect_images(target: Path, out: Path, method: str = "learned", model: Path 
     t0 = time.perf_counter()
     refs = find_images(Path(target))
     images = [read_color_image(r.path) for r in refs]  # all checked before any work
-    detect, model_name = make_detector(method, model, device, refine)
-    if method == "learned":
-        for r, im in zip(refs, images, strict=True):
-            detect.__self__.check_size(im, str(r.path))
+    detect, model_name = make_detector(method, model, device, refine,
+                                       [(str(r.path), im) for r, im in zip(refs, images, strict=True)])
     entries, seconds, total, first = [], {}, 0, None
     for i, (ref, im) in enumerate(zip(refs, images, strict=True)):
         d = detect([im])[0]

@@ -124,7 +124,8 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
             raise PerceptionInputError(left_white or dataset, f"{len(whites[2])} white-light frames but {len(frames_l)} UV frames",
                                        "give the white-light images of the same frames")
     flat = load_flat_stack(stack) if stack else None
-    detect, _ = make_detector(detector, model, device)
+    detect, _ = make_detector(detector, model, device, images=[*zip(names_l, frames_l, strict=True),
+                                                                *zip(names_r, frames_r, strict=True)])
     n = len(frames_l)
     t0 = time.perf_counter()
     dets = [detect([a, b]) for a, b in zip(frames_l, frames_r, strict=True)]

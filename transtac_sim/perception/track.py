@@ -51,7 +51,7 @@ def track_images(target: Path, out: Path, method: str = "bytetrack", detector: s
         raise ValueError(f"unknown tracking method {method!r} (bytetrack or flow)")
     refs = sequence_images(target, sequence, camera)
     images = [read_color_image(r.path) for r in refs]
-    detect, model_name = make_detector(detector, model, device)
+    detect, model_name = make_detector(detector, model, device, images=[(str(r.path), im) for r, im in zip(refs, images, strict=True)])
     t0 = time.perf_counter()
     frames = []
     for i, im in enumerate(images):
