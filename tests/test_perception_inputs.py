@@ -88,3 +88,25 @@ def test_detect_on_a_folder_writes_the_contract_file(images: Path, tmp_path: Pat
     assert [Path(e["path"]).name for e in data["images"]] == ["000.png", "001.png"]
     assert len(data["images"][0]["markers"]) == len(grid_markers())
     assert set(data["images"][0]["markers"][0]) == {"uv", "score"}
+
+
+def test_detect_and_track_on_a_dataset_folder(tmp_path: Path):
+    import json
+
+    from synthetic_markers import write_tiny_dataset
+
+    ds = write_tiny_dataset(tmp_path / "ds", sequences=2, frames=3)
+    res = runner.invoke(app, ["detect", str(ds), "--method", "blob", "--out", str(tmp_path / "d.json")])
+    assert res.exit_code == 0, res.output
+    paths = [e["path"] for e in json.loads((tmp_path / "d.json").read_text())["images"]]
+    assert len(paths) == 12 and paths[0] == "sequences/seq_00000/000000/left_uv.png"
+    res = runner.invoke(app, ["track", str(ds), "--detector", "blob", "--sequence", "seq_00001", "--camera", "right",
+                              "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 0, res.output
+    frames = json.loads((tmp_path / "t.json").read_text())["frames"]
+    assert [f["path"] for f in frames] == [f"sequences/seq_00001/{k:06d}/right_uv.png" for k in range(3)]
+    last = frames[-1]["markers"]
+    assert all(m["track_id"] >= 0 for m in last)
+    assert np.allclose([m["displacement_px"] for m in last], [1.4, 0.8], atol=0.05)  # 0.7, 0.4 px per frame
+    res = runner.invoke(app, ["track", str(ds), "--sequence", "nope", "--out", str(tmp_path / "t2.json")])
+    assert res.exit_code == 2 and "no sequence 'nope'" in " ".join(res.output.split())

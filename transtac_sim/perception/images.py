@@ -24,9 +24,10 @@ def is_dataset(folder: Path) -> bool:
     return (folder / "sequences").is_dir()
 
 
-def find_images(target: Path, pattern: str = "*_uv.png") -> list[ImageRef]:
-    """The images a command works on: ``target`` itself, the images in a folder (sorted by name), or every
-    ``pattern`` under a dataset's ``sequences/`` (sorted). Raises PerceptionInputError when there are none."""
+def find_images(target: Path, pattern: str = "**/*_uv.png") -> list[ImageRef]:
+    """The images a command works on: ``target`` itself, the images in a folder (sorted by name), or the
+    files matching the glob ``pattern`` under a dataset's ``sequences/`` (sorted; e.g. ``seq_00000/*/left_uv.png``).
+    Raises PerceptionInputError when there are none."""
     target = Path(target)
     if not target.exists():
         raise PerceptionInputError(target, "no such file or folder", "check the path")
@@ -34,8 +35,7 @@ def find_images(target: Path, pattern: str = "*_uv.png") -> list[ImageRef]:
         return [ImageRef(target, str(target))]
     if is_dataset(target):
         refs = [ImageRef(p, str(p.relative_to(target))) for p in sorted((target / "sequences").glob(pattern))
-                if p.is_file()] if "/" in pattern else \
-               [ImageRef(p, str(p.relative_to(target))) for p in sorted((target / "sequences").rglob(pattern))]
+                if p.is_file()]
         what = f"no {pattern} under sequences/"
     else:
         refs = [ImageRef(p, str(p)) for p in sorted(target.iterdir())
