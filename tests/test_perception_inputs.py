@@ -81,8 +81,9 @@ def test_detect_on_a_folder_writes_the_contract_file(images: Path, tmp_path: Pat
     import json
 
     out = tmp_path / "det.json"
-    res, _ = _detect([str(images), "--method", "blob"], out)
+    res, _ = _detect([str(images), "--method", "blob", "--preview", str(tmp_path / "p.png")], out)
     assert res.exit_code == 0, res.output
+    assert cv2.imread(str(tmp_path / "p.png")).shape == (2 * 96, 2 * 128, 3)  # the first image, enlarged 2x
     data = json.loads(out.read_text())
     assert data["method"] == "blob" and data["model"] is None
     assert [Path(e["path"]).name for e in data["images"]] == ["000.png", "001.png"]

@@ -1,4 +1,4 @@
-"""Pictures for people: an image with its detected markers circled (and track ids, when tracked)."""
+"""Pictures for people: an image with its detected markers circled."""
 
 from __future__ import annotations
 
@@ -10,18 +10,14 @@ import numpy as np
 from transtac_sim.writer.atomic import atomic_write
 
 
-def detection_preview(image_bgr: np.ndarray, uv: np.ndarray, path: Path, labels: list[str] | None = None,
-                      scale: int = 2) -> Path:
+def detection_preview(image_bgr: np.ndarray, uv: np.ndarray, path: Path, scale: int = 2) -> Path:
     """PNG of ``image_bgr`` brightened to its 99.9th percentile, enlarged ``scale`` times, with a circle at
-    each ``uv`` (px) and an optional label beside it."""
+    each ``uv`` (px)."""
     img = image_bgr.astype(np.float32)
     img = np.clip(img * (230.0 / max(float(np.percentile(img, 99.9)), 1.0)), 0, 255).astype(np.uint8)
     img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-    for k, (u, v) in enumerate(np.asarray(uv).reshape(-1, 2)):
+    for u, v in np.asarray(uv).reshape(-1, 2):
         c = (int(round((u + 0.5) * scale - 0.5)), int(round((v + 0.5) * scale - 0.5)))
         cv2.circle(img, c, 6 * scale, (0, 0, 255), 1, cv2.LINE_AA)
-        if labels:
-            cv2.putText(img, labels[k], (c[0] + 7 * scale, c[1]), cv2.FONT_HERSHEY_SIMPLEX, 0.35 * scale,
-                        (255, 255, 255), 1, cv2.LINE_AA)
     ok, buf = cv2.imencode(".png", img)
     return atomic_write(Path(path), lambda f: f.write(buf.tobytes()))
