@@ -51,12 +51,20 @@ def test_every_eighth_sequence_is_validation(tmp_path: Path):
     assert len(train) == 16 and len(val) == 2
 
 
-def test_correlation_term_trains(tmp_path: Path):
-    ds = write_tiny_dataset(tmp_path / "ds", sequences=2, frames=1)
-    losses = []
-    cfg = TrainConfig(steps=20, batch=4, crop_px=64, width=8, device="cpu", eval_every=20, correlation_weight=0.1)
-    train_detector([ds], tmp_path / "m.pt", cfg, lambda step, loss, val: losses.append(loss))
-    assert all(np.isfinite(losses))
+def test_correlation_term_is_zero_for_alike_neighbours_and_one_for_orthogonal_ones():
+    """L_corr = mean over neighbour pairs of (1 - cos): features equal at every marker give 0, features
+    alternating between two orthogonal vectors along a row of markers give 1 (every neighbour differs)."""
+    from transtac_sim.perception.training.loss import correlation_term
+
+    centres = [np.array([[2 + 4 * k, 5] for k in range(6)])]  # cells (x, y), 4 cells apart
+    feats = torch.zeros(1, 2, 10, 30)
+    feats[0, 0] = 1.0
+    assert float(correlation_term(feats, centres, k=1)) == pytest.approx(0.0, abs=1e-6)
+    for k, (x, y) in enumerate(centres[0]):
+        feats[0, :, y, x] = torch.tensor([1.0, 0.0]) if k % 2 == 0 else torch.tensor([0.0, 1.0])
+    assert float(correlation_term(feats, centres, k=1)) == pytest.approx(1.0, abs=1e-6)
+    far = [np.array([[2, 5], [28, 5]])]  # 26 cells apart: beyond the cluster radius, no pair
+    assert float(correlation_term(feats, far)) == 0.0
 
 
 @pytest.mark.slow
