@@ -103,3 +103,29 @@ def test_dense_needs_the_white_light_images(tmp_path: Path):
     root, _ = _scene(tmp_path, frames=1)
     res, text = _run(root, tmp_path / "out", "--dense", "sgbm")
     assert res.exit_code == 2 and "--left-white" in text and not (tmp_path / "out").exists()
+
+
+def test_learned_stereo_and_anchor_options_refuse_what_is_missing(tmp_path: Path):
+    root, _ = _scene(tmp_path, frames=1)
+    white = ["--left-white", str(root / "left"), "--right-white", str(root / "right")]
+    res, text = _run(root, tmp_path / "out", "--dense", "onnx", *white)
+    assert res.exit_code == 2 and "--stereo-model" in text and not (tmp_path / "out").exists()
+    res, text = _run(root, tmp_path / "out", "--dense", "onnx", "--stereo-model", str(root / "none.onnx"), *white)
+    assert res.exit_code == 2 and "none.onnx" in text and "never downloaded" in text and not (tmp_path / "out").exists()
+    res, text = _run(root, tmp_path / "out", "--dense", "sgbm", "--anchors", "distance-aware", *white)
+    assert res.exit_code == 2 and "gel_thickness_mm" in text and not (tmp_path / "out").exists()
+
+
+def test_preview_video_has_a_frame_per_stereo_frame(tmp_path: Path):
+    root, _ = _scene(tmp_path, frames=3)
+    res, text = _run(root, tmp_path / "out", "--preview", "video")
+    assert res.exit_code == 0, text
+    cap = cv2.VideoCapture(str(tmp_path / "out" / "preview.mp4"))
+    count, shape = 0, None
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        count, shape = count + 1, frame.shape
+    assert count == 3 and shape[1] == 3 * SHAPE[1]  # left, right and the depth panel
+    assert not (tmp_path / "out" / "preview.png").exists()

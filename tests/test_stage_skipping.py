@@ -74,3 +74,18 @@ def test_render_command_writes_images_labels_and_contact_sheet(tmp_path):
     assert r.exit_code == 0, r.output
     for name in ("left_uv.png", "right_white.png", "labels.json", "contact_sheet.png"):
         assert (tmp_path / name).is_file()
+
+
+def test_an_indenter_that_only_hovers_needs_no_fem(monkeypatch, tmp_path):
+    """A hold-only indenter above the gel (the fusion benchmark's scene) is rendered at its start pose,
+    with zero force, and nothing imports the FEM; one that presses needs it."""
+    monkeypatch.setitem(sys.modules, "transtac_sim.physics", None)
+    monkeypatch.setitem(sys.modules, "warp", None)
+    setup = load_setup(REPO / "scenes" / "perception" / "fusion_distances.toml")
+    assert not setup.has_contact
+    (f,) = list(simulate_frames(setup, 1, StageClock()))
+    assert np.array_equal(f.indenter_poses[0], setup.indenters[0].start_pose)
+    assert np.array_equal(f.forces_n[0], np.zeros(3)) and f.depths_mm == [0.0]
+    pressed = dataclasses.replace(setup, indenters=[dataclasses.replace(
+        setup.indenters[0], config=setup.indenters[0].config.model_copy(update={"start_gap_mm": 0.0}))])
+    assert pressed.has_contact

@@ -126,7 +126,13 @@ def register(app: typer.Typer) -> None:
                     model: Path = typer.Option(None, help="detector model (.pt); default: the shipped one"),
                     stack: Path = typer.Option(None, help="flat-stack JSON for refraction-aware triangulation "
                                                           "(stereo/triangulation.py); without it: linear"),
-                    dense: str = typer.Option("none", help="none or sgbm: dense depth of the white-light pair, aligned to the markers"),
+                    dense: str = typer.Option("none", help="none, sgbm, or onnx (a local learned stereo model: "
+                                                           "--stereo-model): dense depth of the white-light pair"),
+                    stereo_model: Path = typer.Option(None, help="ONNX stereo model file for --dense onnx "
+                                                                 "(docs/formats.md; never downloaded)"),
+                    anchors: str = typer.Option("markers", help="markers, or distance-aware (markers plus object "
+                                                                "features; needs --stack with gel_thickness_mm)"),
+                    preview: str = typer.Option("png", help="png (last frame), video (preview.mp4, every frame) or none"),
                     left_white: Path = typer.Option(None, help="left white-light images (with --dense, without --dataset)"),
                     right_white: Path = typer.Option(None, help="right white-light images (with --dense, without --dataset)"),
                     device: str = typer.Option("auto", help="auto, cpu or cuda")) -> None:
@@ -140,13 +146,16 @@ def register(app: typer.Typer) -> None:
                 task = bar.add_task("reconstruct", total=None)
                 rep = run(out, dataset=dataset, sequence=sequence, calibration=calibration, left=left, right=right,
                           matcher=matcher, detector=detector, model=model, stack=stack, device=device,
-                          dense=dense, left_white=left_white, right_white=right_white, progress=lambda done, total: bar.update(task, completed=done, total=total))
+                          dense=dense, stereo_model=stereo_model, anchors=anchors, left_white=left_white,
+                          right_white=right_white, preview=preview,
+                          progress=lambda done, total: bar.update(task, completed=done, total=total))
         except (PerceptionInputError, ValueError) as e:
             _fail(e)
         console.print(f"[bold]{rep.frames}[/] frame(s), {rep.mean_matches:.1f} matches per frame ({matcher}, "
                       f"{rep.triangulation} triangulation); per frame: detect {1000 * rep.seconds['detect']:.0f} ms, "
                       f"track {1000 * rep.seconds['track']:.0f} ms")
-        console.print(f"  wrote {rep.out}/frames/, summary.json, preview.png")
+        shown = {"png": ", preview.png", "video": ", preview.mp4", "none": ""}[preview]
+        console.print(f"  wrote {rep.out}/frames/, summary.json{shown}" + (", dense/" if dense != "none" else ""))
 
     @app.command()
     def calibrate(left: Path = typer.Option(..., help="left camera's chessboard images (a folder, sorted)"),

@@ -32,7 +32,9 @@ class SceneSetup:
 
     @property
     def has_contact(self) -> bool:
-        return bool(self.indenters)
+        """Whether any indenter can touch the gel: one that starts above the surface and only holds never does."""
+        return any(i.config.start_gap_mm <= 0 or any(s.kind != "hold" for s in i.config.trajectory)
+                   for i in self.indenters)
 
 
 def load_setup(path: str | Path) -> SceneSetup:

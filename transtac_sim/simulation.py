@@ -1,7 +1,8 @@
 """The simulator stage as the dataset sees it: per frame, the deformed gel, the markers' positions, the
 indenters' poses and forces, and the solver record.
 
-A contact-free scene never meshes the gel or calls the FEM solver: every frame is the rest state. A frame
+A contact-free scene (no indenter, or indenters that only hold above the gel) never meshes the gel or calls
+the FEM solver: every frame is the rest state, with the indenters at their start poses. A frame
 in which an indenter is pressed into the gel's plane but exerts no force fails (``check_pressed_indenters_touch``).
 """
 
@@ -78,8 +79,10 @@ def check_pressed_indenters_touch(setup: SceneSetup, frame: int, poses: list[np.
 def simulate_frames(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFrame]:
     """``frames`` physics frames of ``setup``, in order (each warm-starts from the last)."""
     if not setup.has_contact:
+        poses = [i.start_pose for i in setup.indenters]
         for f in range(frames):
-            yield PhysicsFrame(f, setup.sensor.markers_rest_gel_mm, None, None, None, [], [], [], dict(REST_SOLVER))
+            yield PhysicsFrame(f, setup.sensor.markers_rest_gel_mm, None, None, None, poses,
+                               [np.zeros(3) for _ in poses], [0.0 for _ in poses], dict(REST_SOLVER))
         return
     yield from _solve_with_fem(setup, frames, clock)
 

@@ -18,6 +18,7 @@ class Randomize(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     indenter_meshes: list[str] = Field(default_factory=list, description="choose each indenter's mesh from these (mm)")
     start_xy_mm: tuple[Range, Range] | None = None
+    start_gap_mm: Range | None = Field(default=None, description="height of the lowest point above the surface")
     rotation_z_deg: Range | None = None
     press_depth_mm: Range | None = None
     slide_direction_deg: Range | None = None

@@ -41,7 +41,9 @@ class Indenter(_Strict):
     ``"footprint"`` (default) is the centre of the part a press touches (the xy centre of the body within
     0.5 mm of its lowest point, transtac_sim/indenters/placement.py), ``"origin"`` the mesh file's origin.
     Poses (``pose_mm``) map the mesh file's frame either way, and ``rotate`` / ``roll`` segments turn about
-    its origin."""
+    its origin. ``texture = "speckle"`` modulates its white-light colour by a 3D noise of feature size
+    ``texture_scale_mm`` fixed to the body (per mesh vertex: use a finely tessellated mesh); an indenter
+    whose trajectory only holds above the surface never touches the gel, so its scene needs no FEM."""
 
     name: str = Field(min_length=1)
     mesh: str
@@ -53,6 +55,9 @@ class Indenter(_Strict):
     rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     friction: float = Field(default=0.5, ge=0.0, le=5.0)
     color_rgb: tuple[float, float, float] = (0.75, 0.75, 0.75)
+    texture: Literal["none", "speckle"] = Field(
+        default="none", description="speckle: a random pattern fixed to the body (features for dense stereo)")
+    texture_scale_mm: float = Field(default=1.0, gt=0.05, le=50.0, description="the speckle's feature size")
     trajectory: list[Segment] = Field(min_length=1)
 
 class Outputs(_Strict):

@@ -58,6 +58,8 @@ def sequence_variant(scene: Scene, index: int) -> Variant:
                 s = s.model_copy(update=su)
             segs.append(s)
         upd["trajectory"] = segs
+        if r.start_gap_mm is not None:
+            upd["start_gap_mm"] = draw(r.start_gap_mm)
         indenters.append(ind.model_copy(update=upd))
     return Variant(
         scene=scene.model_copy(update={"indenters": indenters}),

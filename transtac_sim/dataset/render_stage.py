@@ -6,6 +6,7 @@ import numpy as np
 import trimesh
 
 from transtac_sim.camera.model import CameraEffects
+from transtac_sim.indenters.texture import speckle_albedo
 from transtac_sim.labels.markers import frame_labels
 from transtac_sim.rendering.from_sensor import scene_from_sensor
 from transtac_sim.rendering.inputs import FrameState, RenderRequest, RenderSettings
@@ -14,6 +15,14 @@ from transtac_sim.rendering.renderer import Renderer
 
 def _posed(mesh: trimesh.Trimesh, pose: np.ndarray, to_left: np.ndarray) -> np.ndarray:
     return mesh.vertices @ pose[:3, :3].T + pose[:3, 3] + to_left
+
+
+def _albedo(indenter, index: int) -> np.ndarray | None:
+    """Per-vertex white-light albedo of a textured indenter (None: its plain colour)."""
+    cfg = indenter.config
+    if cfg.texture == "none":
+        return None
+    return speckle_albedo(indenter.mesh.mesh.vertices, cfg.color_rgb, cfg.texture_scale_mm, seed=index)
 
 
 class FrameRenderer:
@@ -31,7 +40,8 @@ class FrameRenderer:
             gel_rest_vertices, gel_faces = np.asarray(box.vertices), np.asarray(box.faces)
         r = sc.render
         self.exposure = {"uv": r.exposure_uv * variant.exposure_scale, "white": r.exposure_white * variant.exposure_scale}
-        ind = [(_posed(i.mesh.mesh, i.start_pose, self.o), i.mesh.mesh.faces, i.config.color_rgb) for i in setup.indenters]
+        ind = [(_posed(i.mesh.mesh, i.start_pose, self.o), i.mesh.mesh.faces, i.config.color_rgb, _albedo(i, k))
+               for k, i in enumerate(setup.indenters)]
         self.scene = scene_from_sensor(s, gel_rest_vertices, gel_faces, ind, ambient_white=r.ambient_white)
         self.scene.lights = [type(li)(li.kind, li.centre, li.normal, li.size, li.radiance * variant.light_scale, li.u_axis)
                              for li in self.scene.lights]

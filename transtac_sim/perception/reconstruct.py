@@ -6,12 +6,15 @@ calibration file with left and right image folders (paired in sorted order), sin
 Triangulation is refraction-aware when a flat-stack file is given (``stereo.triangulation``), else linear
 (pinhole; about 2.6 mm off through the TransTac's backing and gel, BENCHMARKS.md ``matching_exact_labels``).
 
-With ``dense="sgbm"`` the white-light pair of each frame also gives a dense point cloud aligned to the
-frame's triangulated markers (``stereo.dense``): ``OUT/dense/<frame:06d>.exr`` (depth, mm) and ``.ply``.
+With ``dense="sgbm"`` (or ``"onnx"`` with a local ``stereo_model`` file) the white-light pair of each frame
+also gives a dense point cloud aligned to the frame's anchors (``perception.fuse``; ``anchors``: the
+triangulated markers, or ``"distance-aware"``: markers plus object features, which needs ``stack``):
+``OUT/dense/<frame:06d>.exr`` (depth, mm) and ``.ply``.
 
 Output (DESIGN.md section 6; ``docs/formats.md``): ``OUT/frames/<frame:06d>.json`` per frame,
-``OUT/summary.json`` and ``OUT/preview.png`` (the last frame's matches drawn on both views). Every input is
-read and checked before anything is written; each file is written atomically. A frame with fewer than
+``OUT/summary.json`` and ``OUT/preview.png`` (the last frame's matches drawn on both views beside its
+surface coloured by depth) or, with ``preview="video"``, ``OUT/preview.mp4`` of every frame. Every input
+is read and checked before anything is written; each file is written atomically. A frame with fewer than
 three markers in a view is written with zero matches and its reason.
 """
 
@@ -27,7 +30,9 @@ import numpy as np
 
 from transtac_sim.perception.detect import make_detector
 from transtac_sim.perception.errors import PerceptionInputError
+from transtac_sim.perception.fuse import ANCHOR_MODES, fuse_frame
 from transtac_sim.perception.images import ImageRef, find_images, read_color_image
+from transtac_sim.perception.preview import reconstruction_panel, write_png, write_video
 from transtac_sim.perception.stereo import (
     MATCHERS,
     MatchParams,
@@ -36,9 +41,10 @@ from transtac_sim.perception.stereo import (
     load_flat_stack,
 )
 from transtac_sim.perception.stereo.calibration import check_image_size
+from transtac_sim.perception.stereo.dense import OnnxStereo
 from transtac_sim.perception.stereo.triangulation import triangulate_linear, triangulate_refracted
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
-from transtac_sim.writer.atomic import atomic_write, write_json
+from transtac_sim.writer.atomic import write_json
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 MIN_MARKERS = 3
@@ -107,12 +113,23 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
                 calibration: Path | None = None, left: Path | None = None, right: Path | None = None,
                 matcher: str = "delaunay", detector: str = "learned", model: Path | None = None,
                 stack: Path | None = None, device: str = "auto", dense: str = "none",
-                left_white: Path | None = None, right_white: Path | None = None,
+                stereo_model: Path | None = None, anchors: str = "markers",
+                left_white: Path | None = None, right_white: Path | None = None, preview: str = "png",
                 progress: Callable[[int, int], None] | None = None) -> ReconstructReport:
     if matcher not in (*MATCHERS, "farneback", "sgbm"):
         raise ValueError(f"unknown matcher {matcher!r} ({', '.join([*MATCHERS, 'farneback', 'sgbm'])})")
-    if dense not in ("none", "sgbm"):
-        raise ValueError(f"unknown dense method {dense!r} (none or sgbm)")
+    if dense not in ("none", "sgbm", "onnx"):
+        raise ValueError(f"unknown dense method {dense!r} (none, sgbm or onnx)")
+    if anchors not in ANCHOR_MODES:
+        raise ValueError(f"unknown anchors {anchors!r} ({' or '.join(ANCHOR_MODES)})")
+    if preview not in ("png", "video", "none"):
+        raise ValueError(f"unknown preview {preview!r} (png, video or none)")
+    stereo = None
+    if dense == "onnx":
+        if stereo_model is None:
+            raise PerceptionInputError("reconstruct", "--dense onnx needs the model file",
+                                       "pass --stereo-model MODEL.onnx (your local export), or use --dense sgbm")
+        stereo = OnnxStereo(stereo_model)
     calib, names_l, frames_l, names_r, frames_r = _inputs(dataset, sequence, calibration, left, right)
     whites = None
     if dense != "none":
@@ -124,6 +141,9 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
             raise PerceptionInputError(left_white or dataset, f"{len(whites[2])} white-light frames but {len(frames_l)} UV frames",
                                        "give the white-light images of the same frames")
     flat = load_flat_stack(stack) if stack else None
+    if dense != "none" and anchors == "distance-aware" and (flat is None or flat.gel_thickness_mm is None):
+        raise PerceptionInputError(stack or "reconstruct", "distance-aware anchors need a flat stack with gel_thickness_mm",
+                                   "pass --stack with the stack's JSON (docs/formats.md), or use --anchors markers")
     detect, _ = make_detector(detector, model, device, images=[*zip(names_l, frames_l, strict=True),
                                                                 *zip(names_r, frames_r, strict=True)])
     n = len(frames_l)
@@ -136,6 +156,7 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
     out = Path(out)
     params = MatchParams()
     total = 0
+    panels: list[np.ndarray] = []
     for f in range(n):
         dl, dr = dets[f]
         record = {"frame": f, "source": {"left": names_l[f], "right": names_r[f]},
@@ -155,60 +176,25 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
         t3 = time.perf_counter()
         record["matches"] = [{"left": int(i), "right": int(j), "track_id": int(tracks.track_ids[f][i]),
                               "xyz_mm": np.round(p, 4).tolist()} for (i, j), p in zip(pairs, xyz, strict=True)]
+        dense_z = None
         if whites is not None:
-            record["dense"] = _fuse(calib, whites[2][f], whites[4][f], lu, ru, xyz, out / "dense" / f"{f:06d}")
+            record["dense"], dense_z = fuse_frame(calib, whites[2][f], whites[4][f], lu, ru, xyz,
+                                                  out / "dense" / f"{f:06d}", stack=flat, model=stereo, anchors=anchors)
         record["seconds"] = {"detect": t_detect, "track": t_track, "match": t2 - t1, "triangulate": t3 - t2,
                              "dense": time.perf_counter() - t3 if whites is not None else 0.0}
         write_json(out / "frames" / f"{f:06d}.json", record)
         total += len(pairs)
+        if preview == "video" or (preview == "png" and f == n - 1):
+            panels.append(reconstruction_panel(frames_l[f], frames_r[f], dl.uv, dr.uv, pairs, xyz, dense_z))
         if progress:
             progress(f + 1, n)
-    _preview(frames_l[-1], frames_r[-1], dets[-1][0].uv, dets[-1][1].uv, pairs, out / "preview.png")
+    if preview == "png":
+        write_png(out / "preview.png", panels[-1])
+    elif preview == "video":
+        write_video(out / "preview.mp4", panels)
     report = ReconstructReport(out, n, total / n, "refraction-aware" if flat is not None else "linear",
                                {"detect": t_detect, "track": t_track})
     write_json(out / "summary.json", {"frames": n, "mean_matches": report.mean_matches, "matcher": matcher,
                                       "detector": detector, "triangulation": report.triangulation,
                                       "seconds_per_frame": report.seconds})
     return report
-
-
-def _fuse(calib, left_white: np.ndarray, right_white: np.ndarray, left_uv: np.ndarray, right_uv: np.ndarray,
-          xyz: np.ndarray, stem: Path) -> dict:
-    """Dense SGBM points of the white pair aligned to the markers; writes ``stem``.exr and .ply."""
-    from transtac_sim.perception.stereo.dense import (
-        align_to_markers,
-        dense_points,
-        write_depth_exr,
-        write_ply,
-    )
-
-    if len(xyz) < 3:
-        return {"aligned": False, "reason": "fewer than 3 triangulated markers"}
-    d_ref = float(np.median(calib.rectified(left_uv, "left")[:, 0] - calib.rectified(right_uv, "right")[:, 0]))
-    points = dense_points(calib, left_white, right_white, d_ref)
-    a = align_to_markers(points, calib, left_uv, xyz)
-    if a is None:
-        return {"aligned": False, "reason": "no similarity found (fewer than 3 consistent marker anchors)"}
-    fused = a.apply(points.xyz_mm.reshape(-1, 3)).reshape(points.xyz_mm.shape)
-    write_depth_exr(stem.with_suffix(".exr"), np.where(points.valid, fused[:, :, 2], np.inf))
-    write_ply(stem.with_suffix(".ply"), fused[points.valid])
-    return {"aligned": True, "scale": a.scale, "anchors": a.pairs, "inliers": a.inliers, "rms_mm": a.rms_mm,
-            "valid_fraction": float(points.valid.mean())}
-
-
-def _preview(left: np.ndarray, right: np.ndarray, uv_l: np.ndarray, uv_r: np.ndarray, pairs: np.ndarray,
-             path: Path) -> Path:
-    """Both views side by side (brightened), detections circled, matches joined by lines."""
-    both = np.hstack([left, right]).astype(np.float32)
-    both = np.clip(both * (230.0 / max(float(np.percentile(both, 99.9)), 1.0)), 0, 255).astype(np.uint8)
-    w = left.shape[1]
-    for u, v in uv_l:
-        cv2.circle(both, (int(round(u)), int(round(v))), 5, (0, 0, 255), 1, cv2.LINE_AA)
-    for u, v in uv_r:
-        cv2.circle(both, (int(round(u)) + w, int(round(v))), 5, (0, 0, 255), 1, cv2.LINE_AA)
-    for i, j in pairs:
-        a = (int(round(uv_l[i][0])), int(round(uv_l[i][1])))
-        b = (int(round(uv_r[j][0])) + w, int(round(uv_r[j][1])))
-        cv2.line(both, a, b, (255, 200, 0), 1, cv2.LINE_AA)
-    ok, buf = cv2.imencode(".png", both)
-    return atomic_write(path, lambda f: f.write(buf.tobytes()))

@@ -48,10 +48,10 @@ def spectrum_to_rgb(spectrum) -> np.ndarray:
 
 
 def scene_from_sensor(sensor, gel_vertices_gel: np.ndarray, gel_faces: np.ndarray,
-                      indenters: list[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]] = (),
+                      indenters: list[tuple] = (),
                       ambient_white: float = 0.0) -> SensorScene:
     """``SensorScene`` of ``sensor`` with the gel's closed surface mesh (rest vertices in the gel frame) and
-    indenters given as (vertices in the LEFT camera frame, faces, RGB)."""
+    indenters given as (vertices in the LEFT camera frame, faces, RGB) or (..., per-vertex albedo (V, 3))."""
     o = np.asarray(sensor.gel_origin_in_left_mm, float)
     hw = sensor.hardware
     cams = {n: CameraSpec(K=c.K, dist=np.asarray(c.dist, float), size=tuple(c.image_size), R=c.R, T=c.T, model=c.model)
@@ -81,5 +81,6 @@ def scene_from_sensor(sensor, gel_vertices_gel: np.ndarray, gel_faces: np.ndarra
     markers = MarkerSpec(np.asarray(sensor.markers_rest_gel_mm, float) + o, sensor.marker_radius_mm, pigment)
     leaks = [li.visible_leak for li in hw.lights if li.kind == "uv"]
     return SensorScene(cams, gel, backing, housing, markers, lights,
-                       [IndenterSpec(np.asarray(v, float), np.asarray(f), tuple(c)) for v, f, c in indenters],
+                       [IndenterSpec(np.asarray(t[0], float), np.asarray(t[1]), tuple(t[2]), t[3] if len(t) > 3 else None)
+                        for t in indenters],
                        uv_visible_leak=float(np.mean(leaks)) if leaks else 0.0, ambient_white=ambient_white)

@@ -77,5 +77,6 @@ def fluorescence_radiance(E: np.ndarray, pigment: Pigment) -> np.ndarray:
 
 
 def lambertian_radiance(E: np.ndarray, rgb) -> np.ndarray:
-    """Linear RGB radiance (K, 3) reflected by Lambertian surfaces of albedo ``rgb`` under irradiance ``E``."""
-    return np.asarray(E, float)[:, None] * np.asarray(rgb, float)[None] / np.pi
+    """Linear RGB radiance (K, 3) reflected by Lambertian surfaces of albedo ``rgb`` ((3,), or (K, 3) per
+    surface point) under irradiance ``E`` (K,)."""
+    return np.asarray(E, float)[:, None] * np.asarray(rgb, float).reshape(-1, 3) / np.pi

@@ -87,6 +87,7 @@ class IndenterSpec:
     vertices: np.ndarray  # (V, 3)
     faces: np.ndarray  # (F, 3), outward normals
     rgb: tuple[float, float, float] = (0.6, 0.6, 0.6)
+    albedo: np.ndarray | None = None  # (V, 3) per-vertex colour under white light (a texture); None: rgb
 
 
 @dataclass

@@ -162,7 +162,9 @@ class SceneAssembly:
         """Per-vertex radiance (V, 3) of indenter ``i`` reflecting the white LEDs."""
         v = self.indenter_vertices[i]
         normals = trimesh.Trimesh(v, self.scene.indenters[i].faces, process=False).vertex_normals
-        return lambertian_radiance(self._irradiance(v, np.asarray(normals), samples=(8, 2)), self.scene.indenters[i].rgb)
+        spec = self.scene.indenters[i]
+        albedo = spec.rgb if spec.albedo is None else spec.albedo
+        return lambertian_radiance(self._irradiance(v, np.asarray(normals), samples=(8, 2)), albedo)
 
     def update(self, frame: FrameState) -> None:
         """Move the deformable parts to ``frame`` (vertex buffers only; topology never changes)."""

@@ -25,7 +25,9 @@ of ``materials/<backing.material>.toml`` and ``materials/<gel.material>.toml``. 
 (``load_flat_stack``), for the default model:
 
     {"point_mm": [0, 0, 15.0], "normal": [0, 0, 1], "backing_thickness_mm": 2.0,
-     "n_backing": 1.49, "n_gel": 1.41}
+     "n_backing": 1.49, "n_gel": 1.41, "gel_thickness_mm": 5.0}
+
+(``gel_thickness_mm`` is optional: only points beyond the gel need it, ``stereo.anchors``.)
 
 ``scripts/bench_matching.py --write-stack FILE`` writes it from the simulator's sensor. On a real build,
 measure the camera-to-backing distance along the left camera's axis (a tilted backing: its normal in
@@ -50,7 +52,8 @@ class FlatStack:
     """The flat layers in front of the cameras, in the left camera frame (mm).
 
     point_mm: a point on the backing's face towards the cameras; normal: unit normal of the backing,
-    pointing away from the cameras; backing_thickness_mm: h; n_backing, n_gel, n_air: refractive indices.
+    pointing away from the cameras; backing_thickness_mm: h; n_backing, n_gel, n_air: refractive indices;
+    gel_thickness_mm: the gel's, bonded face to contact surface (None: not given).
     """
 
     point_mm: np.ndarray
@@ -59,6 +62,7 @@ class FlatStack:
     n_backing: float
     n_gel: float
     n_air: float = 1.0
+    gel_thickness_mm: float | None = None
 
 
 def flat_stack_from_dict(data: dict, source: Path | str = "stack") -> FlatStack:
@@ -73,17 +77,18 @@ def flat_stack_from_dict(data: dict, source: Path | str = "stack") -> FlatStack:
         point, normal = np.asarray(data["point_mm"], float), np.asarray(data["normal"], float)
         h, nb, ng = (float(data[k]) for k in ("backing_thickness_mm", "n_backing", "n_gel"))
         na = float(data.get("n_air", 1.0))
+        gel = None if data.get("gel_thickness_mm") is None else float(data["gel_thickness_mm"])
     except (TypeError, ValueError):
         raise PerceptionInputError(source, "a value is not numeric", "give numbers in mm and plain indices") from None
     if point.shape != (3,) or normal.shape != (3,) or not np.linalg.norm(normal) > 0:
         raise PerceptionInputError(source, "point_mm and normal must be 3-vectors (normal non-zero)", "fix them")
-    if h <= 0 or min(nb, ng, na) < 1.0:
-        raise PerceptionInputError(source, "thickness must be > 0 and refractive indices >= 1", "fix them")
+    if h <= 0 or (gel is not None and gel <= 0) or min(nb, ng, na) < 1.0:
+        raise PerceptionInputError(source, "thicknesses must be > 0 and refractive indices >= 1", "fix them")
     normal = normal / np.linalg.norm(normal)
     if normal @ point <= 0:
         raise PerceptionInputError(source, "the backing must lie in front of the left camera along its normal",
                                    "give the normal pointing away from the cameras")
-    return FlatStack(point, normal, h, nb, ng, na)
+    return FlatStack(point, normal, h, nb, ng, na, gel)
 
 
 def load_flat_stack(path: Path | str) -> FlatStack:
@@ -114,8 +119,8 @@ def refract(d: np.ndarray, normal: np.ndarray, eta: float) -> np.ndarray:
 
 
 def rays_in_gel(stack: FlatStack, centre: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where rays from ``centre`` (3,) along unit ``directions`` (K, 3) (left frame) enter the gel (K, 3),
-    mm, and their unit directions there (K, 3)."""
+    """Where rays from ``centre`` (3,) (or one per ray, (K, 3)) along unit ``directions`` (K, 3) (left frame)
+    enter the gel (K, 3), mm, and their unit directions there (K, 3)."""
     n = stack.normal
     t = ((stack.point_mm - centre) @ n) / (directions @ n)
     at_back = centre + t[:, None] * directions
@@ -136,14 +141,15 @@ def _closest_points_midpoint(p: np.ndarray, u: np.ndarray, q: np.ndarray, v: np.
 def triangulate_refracted(calib: StereoCalibration, stack: FlatStack, left_uv: np.ndarray,
                           right_uv: np.ndarray) -> np.ndarray:
     """Points (K, 3) mm, left camera frame, of matched recorded pixels (K, 2) through ``stack``."""
-    if len(left_uv) == 0:
+    k = len(left_uv)
+    if k == 0:
         return np.zeros((0, 3))
-
-    def directions(camera: str, R: np.ndarray) -> np.ndarray:
-        xy = calib.normalised(left_uv if camera == "left" else right_uv, camera)
-        d = np.column_stack([xy, np.ones(len(xy))]) @ R  # R^T applied to each row: camera -> left frame
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-    pl, dl = rays_in_gel(stack, np.zeros(3), directions("left", np.eye(3)))
-    pr, dr = rays_in_gel(stack, calib.right_centre_mm, directions("right", calib.R))
-    return _closest_points_midpoint(pl, dl, pr, dr)
+    # both cameras' rays traced at once: the left ones, then the right ones
+    xy = np.concatenate([calib.normalised(left_uv, "left"), calib.normalised(right_uv, "right")])
+    d = np.column_stack([xy, np.ones(len(xy))])
+    d[k:] = d[k:] @ calib.R  # R^T applied to each row: right camera -> left frame
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centres = np.zeros_like(d)
+    centres[k:] = calib.right_centre_mm
+    p, d = rays_in_gel(stack, centres, d)
+    return _closest_points_midpoint(p[:k], d[:k], p[k:], d[k:])
