@@ -11,6 +11,7 @@ from rich.table import Table
 
 from transtac_sim.config import ConfigError
 from transtac_sim.perception_cli import register as register_perception
+from transtac_sim.sweep.cli import register as register_sweep
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Simulate the TransTac tactile sensor and generate labelled stereo datasets.")
@@ -240,6 +241,7 @@ def validate(dataset: Path = typer.Argument(..., help="dataset folder")) -> None
 
 
 register_perception(app)
+register_sweep(app)
 
 if __name__ == "__main__":
     app()

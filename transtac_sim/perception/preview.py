@@ -30,7 +30,7 @@ def depth_panel(shape: tuple[int, int], left_uv: np.ndarray, z_mm: np.ndarray,
                 dense_z_mm: np.ndarray | None = None) -> np.ndarray:
     """A BGR picture (h, w) of depth coloured with the turbo map (near red, far blue): the dense depth when
     given (on its own grid, resized), else the markers' z interpolated linearly between them (scipy's
-    griddata, inside their convex hull), with the range written in mm."""
+    griddata, inside their convex hull), coloured over its 5th to 95th percentile (written in mm)."""
     h, w = shape
     if dense_z_mm is not None:
         z = cv2.resize(np.where(np.isfinite(dense_z_mm), dense_z_mm, np.nan).astype(np.float32), (w, h),
@@ -48,7 +48,7 @@ def depth_panel(shape: tuple[int, int], left_uv: np.ndarray, z_mm: np.ndarray,
     ok = np.isfinite(z)
     panel = np.zeros((h, w, 3), np.uint8)
     if ok.any():
-        lo, hi = np.percentile(z[ok], [1, 99])
+        lo, hi = np.percentile(z[ok], [5, 95])
         scaled = np.clip((hi - np.where(ok, z, hi)) / max(hi - lo, 1e-6), 0, 1)
         panel = cv2.applyColorMap((255 * scaled).astype(np.uint8), cv2.COLORMAP_TURBO)
         panel[~ok] = 0
