@@ -1,6 +1,7 @@
 """Labelled stereo frames per hour of `transtac-sim generate`, and how the time splits over the stages.
 
     .venv/bin/python scripts/bench_generate.py [--scene scenes/train_random.toml] [--sequences 2] [--frames 4]
+        [--workers K] [--executor local|ray]
 
 Runs the generator into a temporary folder, reads the per-stage seconds from its manifest, and writes a
 table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
@@ -31,7 +32,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
-         workers: int = typer.Option(1, min=1), write: bool = typer.Option(True, help="update BENCHMARKS.md"),
+         workers: int = typer.Option(1, min=1),
+         executor: str = typer.Option("local", help="local, or ray (on a machine with GPUs: one sequence per GPU)"),
+         write: bool = typer.Option(True, help="update BENCHMARKS.md"),
          section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),
          mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes")) -> None:
     if mesh_only:
@@ -42,7 +45,8 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
     cached_before = set(cache_dir().glob("*.npz"))
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers)
+        report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers,
+                          executor=executor)
         wall = time.perf_counter() - t0
         manifest = json.loads((Path(tmp) / "ds" / "manifest.json").read_text())
     import mitsuba as mi

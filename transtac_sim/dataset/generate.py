@@ -61,12 +61,15 @@ def _run_local(tasks: list[SequenceTask], workers: int) -> Iterator[list[dict]]:
 
 
 def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int) -> Iterator[list[dict]]:
+    """Each sequence a Ray task; on a cluster with GPUs each task holds one GPU (Ray sets its
+    CUDA_VISIBLE_DEVICES), so a machine with several GPUs runs one sequence on each at once."""
     import ray
 
     if not ray.is_initialized():
         ray.init(address=address, num_cpus=None if address else max(1, workers), include_dashboard=False,
                  log_to_driver=False, ignore_reinit_error=True)
-    remote = ray.remote(_run_task)
+    gpus = ray.cluster_resources().get("GPU", 0)
+    remote = ray.remote(num_gpus=1)(_run_task) if gpus else ray.remote(_run_task)
     pending = [remote.remote(t) for t in tasks]
     while pending:
         ready, pending = ray.wait(pending, num_returns=1)
