@@ -16,13 +16,25 @@ from pathlib import Path
 def machine_name(device: str = "cpu") -> str:
     """``2-core CPU (x86_64)`` or the GPU's name for a CUDA device."""
     if device.startswith("cuda"):
-        try:
-            import warp as wp
-
-            return f"GPU {wp.get_device(device).name}"
-        except Exception:
-            return "GPU"
+        for name_of in (_warp_name, _torch_name):
+            try:
+                return f"GPU {name_of(device)}"
+            except Exception:  # that framework is not installed here, or sees no GPU
+                continue
+        return "GPU"
     return f"{os.cpu_count()}-core CPU ({platform.machine()})"
+
+
+def _warp_name(device: str) -> str:
+    import warp as wp
+
+    return wp.get_device(device).name
+
+
+def _torch_name(device: str) -> str:
+    import torch
+
+    return f"{torch.cuda.get_device_name(torch.device(device))} (torch {torch.__version__})"
 
 
 def update_section(path: Path, name: str, markdown: str) -> None:

@@ -214,6 +214,34 @@ def test_triangle_similarity_ignores_position_and_scale_not_shape_or_mirroring()
     assert not similar(t, t * [-1.0, 1.0], 0.05)  # mirrored: the same edge lengths, the other turn
 
 
+def test_delaunay_shortcuts_give_scipys_triangulation():
+    """The Delaunay matcher's shortcuts (delaunay.py): a right triangle is one of the view's Delaunay
+    triangulation when its circumcircle is empty (the same answer as scipy's, and no answer on a square grid,
+    whose points share circles), and the propagation's edges come from the triangles in the order of
+    ``vertex_neighbor_vertices``, nearest first."""
+    from scipy.spatial import Delaunay
+
+    from transtac_sim.perception.stereo.delaunay import _delaunay_triangles, _edges, _triangles
+
+    rng = np.random.default_rng(3)
+    p = rng.uniform(0.0, 600.0, (110, 2))
+    t = Delaunay(p)
+    others = rng.integers(0, len(p), (400, 3))
+    others = others[(others[:, 0] != others[:, 1]) & (others[:, 1] != others[:, 2]) & (others[:, 0] != others[:, 2])]
+    asked = np.vstack([t.simplices, others])
+    truth = {tuple(sorted(x)) for x in t.simplices.tolist()}
+    answer = _delaunay_triangles(p, asked)
+    assert answer is not None and answer.tolist() == [tuple(sorted(x)) in truth for x in asked.tolist()]
+    grid = np.stack(np.meshgrid(np.arange(6.0), np.arange(5.0)), axis=-1).reshape(-1, 2) * 22.0
+    assert _delaunay_triangles(grid, Delaunay(grid).simplices) is None
+
+    v, w = _edges(_triangles(p), np.arange(len(p)), p)
+    indptr, indices = t.vertex_neighbor_vertices
+    edges = np.column_stack([np.repeat(np.arange(len(p)), np.diff(indptr)), indices])
+    edges = edges[np.lexsort((np.linalg.norm(p[edges[:, 0]] - p[edges[:, 1]], axis=1), edges[:, 0]))]
+    assert np.array_equal(np.column_stack([v, w]), edges)
+
+
 def _dots(points: np.ndarray) -> np.ndarray:
     """A dark 640x480 grey image with a bright anti-aliased dot of radius 3 px at each point (px)."""
     im = np.zeros((480, 640), np.float32)

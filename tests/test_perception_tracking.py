@@ -53,6 +53,21 @@ def _track(step, assoc):
     return truth, track_bytetrack(dets, assoc)
 
 
+def test_a_frame_without_detections_keeps_the_tracks():
+    """A dropped frame (no detections: the camera blinked) is tracked as empty and every marker keeps its id
+    across it (the tracker's lost-track buffer)."""
+    truth, dets = _moving(2.0, frames=5)
+    dets[2] = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)))
+    res = track_bytetrack(dets)
+    assert len(res.track_ids[2]) == 0
+    # the same markers carry the same track ids before and after the gap
+    def id_of_marker(f):
+        return {int(truth[f].ids[np.flatnonzero((truth[f].uv == u).all(axis=1))[0]]): int(k)
+                for u, k in zip(dets[f].uv, res.track_ids[f], strict=True)}
+    before, after = id_of_marker(1), id_of_marker(3)
+    assert before == after and min(before.values()) >= 0
+
+
 def test_displacements_are_measured_from_the_first_frame():
     truth, dets = _moving(3.0, frames=4)
     res = track_bytetrack(dets)

@@ -150,6 +150,9 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
     t0 = time.perf_counter()
     dets = [detect([a, b]) for a, b in zip(frames_l, frames_r, strict=True)]
     t_detect = (time.perf_counter() - t0) / n
+    import supervision  # noqa: F401  the tracker's imports (about a second), outside its timing
+    import trackers  # noqa: F401
+
     t0 = time.perf_counter()
     tracks = track_bytetrack([d[0] for d in dets])
     t_track = (time.perf_counter() - t0) / n

@@ -30,6 +30,7 @@ from transtac_sim.perception.dataset_files import labelled_images, sequences
 from transtac_sim.perception.evaluation.detection import DetectionTally
 from transtac_sim.perception.evaluation.tracking import tracking_metrics
 from transtac_sim.perception.images import read_color_image
+from transtac_sim.perception.tracking.bytetrack import track_bytetrack
 
 RADIUS_PX = 2.0
 MIN_MARKERS = 3
@@ -42,21 +43,6 @@ def _detector(method: str, width: int, height: int):
     from transtac_sim.perception.detect import make_detector
 
     return make_detector(method, None, "cpu", images=[(f"a {width}x{height} benchmark image", np.zeros((height, width, 3), np.uint8))])[0]
-
-
-def track(dets: list):
-    """ByteTrack over the frames; frames without detections get none (ByteTrack is run on the others:
-    it cannot take an empty frame)."""
-    from transtac_sim.perception.tracking import TrackResult
-    from transtac_sim.perception.tracking.bytetrack import track_bytetrack
-
-    keep = [k for k, d in enumerate(dets) if len(d)]
-    res = track_bytetrack([dets[k] for k in keep]) if keep else TrackResult([], [])
-    uv = [np.zeros((0, 2)) for _ in dets]
-    ids = [np.zeros(0, np.int64) for _ in dets]
-    for k, u, i in zip(keep, res.uv, res.track_ids, strict=True):
-        uv[k], ids[k] = u, i
-    return TrackResult(uv, ids)
 
 
 def flat_stack_of(sensor) -> dict:
@@ -104,7 +90,7 @@ def score_dataset(dataset: Path, stack: dict, *, detector: str = "learned", matc
             tally.add(dr.uv, R.truth.uv)
             dets.append((dl, dr))
         t0 = time.perf_counter()
-        tracks = track([d[0] for d in dets])
+        tracks = track_bytetrack([d[0] for d in dets])
         sec["track"] += time.perf_counter() - t0
         idf1.append(tracking_metrics([lis[(f, "left")].truth for f in order], tracks, RADIUS_PX)["idf1"])
         for f, (dl, dr) in zip(order, dets, strict=True):

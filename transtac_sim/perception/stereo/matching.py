@@ -75,16 +75,24 @@ def no_pairs() -> np.ndarray:
 
 def estimate_disparity(dy: np.ndarray, disparity: np.ndarray, params: MatchParams) -> float:
     """The mode (px) of the disparities of all pairs within the epipolar gate (NaN when there are none)."""
-    d = disparity[np.abs(dy) <= params.tau_epi_px]
+    return _disparity_mode(disparity[np.abs(dy) <= params.tau_epi_px], params.disparity_bin_px)
+
+
+def _disparity_mode(d: np.ndarray, b: float) -> float:
+    """``estimate_disparity`` of the disparities ``d`` in the y gate, histogram bins ``b`` px."""
     if d.size == 0:
         return float("nan")
-    b = params.disparity_bin_px
-    edges = d.min() - b + b * np.arange(int(np.ceil((d.max() - d.min()) / b)) + 4)  # >= 3 bins, one empty each end
-    counts, _ = np.histogram(d, bins=edges)
+    d = np.sort(d)
+    edges = d[0] - b + b * np.arange(int(np.ceil((d[-1] - d[0]) / b)) + 4)  # >= 3 bins, one empty each end
+    # np.histogram(d, edges) of sorted d (the last bin closed): counts between the edges' insertion points
+    counts = np.diff(np.concatenate([np.searchsorted(d, edges[:-1], "left"), np.searchsorted(d, edges[-1:], "right")]))
     smooth = np.convolve(counts, [1, 2, 1], mode="same")  # a peak split over two bins still wins
     k = int(np.argmax(smooth))
-    near = d[np.abs(d - 0.5 * (edges[k] + edges[k + 1])) <= 1.5 * b]
-    return float(np.median(near))
+    near = d[np.abs(d - 0.5 * (edges[k] + edges[k + 1])) <= 1.5 * b]  # sorted: its median is the middle
+    n = len(near)
+    if n == 0:
+        return float("nan")
+    return float(near[n // 2]) if n % 2 else float((near[n // 2 - 1] + near[n // 2]) / 2)
 
 
 def candidates(left_uv: np.ndarray, right_uv: np.ndarray, calib: StereoCalibration,
@@ -93,8 +101,12 @@ def candidates(left_uv: np.ndarray, right_uv: np.ndarray, calib: StereoCalibrati
     L, R = calib.rectified(left_uv, "left"), calib.rectified(right_uv, "right")
     dy = R[None, :, 1] - L[:, None, 1]
     disp = L[:, None, 0] - R[None, :, 0]
-    d_ref = params.disparity_px if params.disparity_px is not None else estimate_disparity(dy, disp, params)
-    gate = (np.abs(dy) <= params.tau_epi_px) & (np.abs(disp - d_ref) <= params.disparity_halfwidth_px)
+    tmp = np.abs(dy)
+    in_y = tmp <= params.tau_epi_px
+    d_ref = params.disparity_px if params.disparity_px is not None else _disparity_mode(disp[in_y], params.disparity_bin_px)
+    np.abs(np.subtract(disp, d_ref, out=tmp), out=tmp)
+    gate = np.less_equal(tmp, params.disparity_halfwidth_px, out=np.empty(tmp.shape, bool))
+    gate &= in_y
     return Candidates(L, R, dy, disp, d_ref, gate)
 
 

@@ -53,6 +53,7 @@ def track_bytetrack(frames: list[Detections], association: str = "iou_enlarged",
                                high_conf_det_threshold=score_split, iou=sim)
     uvs, ids = [], []
     pending: dict[int, tuple[object, int, int]] = {}  # new tracklet -> (tracklet, frame, detection index)
+    alive: set[int] = set()  # the tracklets (ids) after the last update
     for f, det in enumerate(frames):
         n = len(det)
         boxes = det.boxes_xyxy(min_size_px=3.0)
@@ -61,22 +62,24 @@ def track_bytetrack(frames: list[Detections], association: str = "iou_enlarged",
             boxes = np.hstack([det.uv - half, det.uv + half])
         sv_det = sv.Detections(xyxy=boxes.reshape(-1, 4).astype(np.float32), confidence=det.score.astype(np.float32),
                                data={"index": np.arange(n)})
-        before = {id(t) for t in tracker.tracks}
+        before = alive
         res = tracker.update(sv_det)
+        alive = {id(t) for t in tracker.tracks}
         frame_ids = np.full(n, -1, dtype=np.int64)
-        frame_ids[np.asarray(res.data["index"], dtype=int)] = np.asarray(res.tracker_id, dtype=np.int64)
+        if len(res):  # an empty result carries no data columns
+            frame_ids[np.asarray(res.data["index"], dtype=int)] = np.asarray(res.tracker_id, dtype=np.int64)
         uvs.append(det.uv)
         ids.append(frame_ids)
-        for t in tracker.tracks:  # tracks started in this frame: remember which detection started them
-            if id(t) not in before and n:
-                box = t.get_state_bbox()
-                j = int(np.argmin(np.linalg.norm(det.uv - (box[:2] + box[2:]) / 2, axis=1)))
-                pending[id(t)] = (t, f, j)
+        new = [t for t in tracker.tracks if id(t) not in before] if n else []
+        if new:  # tracks started in this frame: remember which detection (nearest their centre) started them
+            box = np.array([t.get_state_bbox() for t in new])
+            js = np.argmin(np.linalg.norm(det.uv[None] - ((box[:, :2] + box[:, 2:]) / 2)[:, None], axis=2), axis=1)
+            pending.update((id(t), (t, f, int(j))) for t, j in zip(new, js, strict=True))
         for key, (t, f0, j) in list(pending.items()):
             if t.tracker_id != -1:
                 if ids[f0][j] == -1:
                     ids[f0][j] = t.tracker_id
                 del pending[key]
-            elif t not in tracker.tracks:
+            elif id(t) not in alive:
                 del pending[key]
     return TrackResult(uvs, ids)
