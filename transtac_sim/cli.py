@@ -26,7 +26,7 @@ def _load(scene: Path):
     try:
         return load_setup(scene)
     except ConfigError as e:
-        console.print(f"[bold red]error:[/] {e}")
+        console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
         raise typer.Exit(2) from None
 
 
@@ -111,7 +111,7 @@ def render(scene: Path = SceneArg,
     setup = _load(scene)
     sc = setup.scene
     if setup.has_contact and frame >= sc.frame_count:
-        console.print(f"[bold red]error:[/] --frame {frame}: the trajectory has {sc.frame_count} frames (0..{sc.frame_count - 1})")
+        console.print(f"[bold red]error:[/] --frame {frame}: the trajectory has {sc.frame_count} frames (0..{sc.frame_count - 1})", soft_wrap=True)
         raise typer.Exit(2)
     out = out or Path("out") / sc.name / "render" / f"{frame:06d}"
     clock = StageClock()
@@ -120,7 +120,7 @@ def render(scene: Path = SceneArg,
         with console.status(f"physics of frames 0..{frame}" if setup.has_contact else "rest state (no contact)"):
             phys = list(simulate_frames(setup, frame + 1, clock))[-1]
     except SimulationFailed as e:
-        console.print(f"[bold red]error:[/] {e}")
+        console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
         raise typer.Exit(1) from None
     with console.status("rendering"):
         renderer = FrameRenderer(setup, sequence_variant(sc, 0), clock, phys.rest_vertices_gel_mm, phys.surface_faces)
@@ -150,7 +150,7 @@ def generate(scene: Path = SceneArg,
     from transtac_sim.dataset.generate import generate as run
 
     if executor not in ("local", "ray"):
-        console.print(f"[bold red]error:[/] --executor {executor!r}: allowed local, ray")
+        console.print(f"[bold red]error:[/] --executor {executor!r}: allowed local, ray", soft_wrap=True)
         raise typer.Exit(2)
     t0 = time.perf_counter()
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} frames"),
@@ -165,7 +165,7 @@ def generate(scene: Path = SceneArg,
             report = run(scene, out, frames=frames, seed=seed, sequences=sequences, workers=workers,
                          executor=executor, address=address, on_frames=on_frames)
         except ConfigError as e:
-            console.print(f"[bold red]error:[/] {e}")
+            console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
             raise typer.Exit(2) from None
     tab = Table(title=f"dataset {report.root}", show_header=False)
     tab.add_row("frames", f"{report.frames_done} done ({report.frames_skipped} already there), "
@@ -211,7 +211,7 @@ def simulate(scene: Path = SceneArg,
         try:
             report = simulate_to_folder(setup, out, frames=frames, overwrite=overwrite, on_frame=on_frame)
         except OutputFolderInUse as e:
-            console.print(f"[bold red]error:[/] {e}")
+            console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
             raise typer.Exit(2) from None
     if report.failure:
         k = report.failure["frame"]

@@ -15,7 +15,7 @@ console = Console()
 
 
 def _fail(e: Exception) -> None:
-    console.print(f"[bold red]error:[/] {e}")
+    console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
     raise typer.Exit(2) from None
 
 
