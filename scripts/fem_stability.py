@@ -27,6 +27,7 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_md import machine_name, update_section  # noqa: E402
 
+from transtac_sim.indenters import library  # noqa: E402
 from transtac_sim.physics import (  # noqa: E402
     ElasticMaterial,
     IndenterStartsInsideGel,
@@ -67,7 +68,8 @@ class Case:
     young_mpa: float = 0.5
     poisson: float = 0.45
     backing: bool = False  # bottom 20 % of the block is a layer 1000x stiffer (nu 0.3)
-    shape: str = "sphere"  # sphere (radius 0.6 t), cube_edge (edge 0.8 t, an edge down), cone (tip down)
+    shape: str = "sphere"  # sphere (radius 0.6 t), cube_edge (edge 0.8 t, an edge down), cone (tip down),
+    # rounded_cone (the same, tip radius 0.1 t), flat_punch (radius 0.4 t)
     friction: float = 0.0
     depth: float = 0.3  # press depth below first contact, fraction of t
     step: float = 0.1  # press increment per frame, fraction of t
@@ -91,6 +93,10 @@ def make_indenter(shape: str, thickness: float, friction: float) -> RigidIndente
     elif shape == "cone":  # half-angle 37 deg, tip down at local (0, 0, -4 s)
         mesh = trimesh.creation.cone(radius=3.0 * s, height=4.0 * s, sections=32)
         mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))
+    elif shape == "rounded_cone":  # the library's cone: the same, its tip rounded to 0.5 mm (scaled with s)
+        mesh = library.cone(radius_mm=3.0 * s, height_mm=4.0 * s, tip_radius_mm=0.5 * s)
+    elif shape == "flat_punch":  # the library's flat punch, radius 2 mm: its sharp rim on the fine mesh
+        mesh = library.flat_punch(radius_mm=2.0 * s, height_mm=4.0 * s)
     else:
         raise ValueError(f"unknown indenter shape {shape!r}")
     return RigidIndenter.from_trimesh(shape, mesh, friction)
@@ -189,6 +195,11 @@ def cases() -> list[Case]:
     out += [Case("gel on a 1000x stiffer backing", backing=True)]
     out += [Case(f"depth {round(d * 100)} % of thickness", depth=d) for d in (0.1, 0.3, 0.5)]
     out += [Case("cube edge, 30 %", shape="cube_edge"), Case("cone tip, 30 %", shape="cone")]
+    out += [Case("cone tip rounded to 0.5 mm, 30 %", shape="rounded_cone"),
+            Case("flat punch (its rim), 30 %", shape="flat_punch")]
+    out += [Case(f"{what}, 30 % + slide mu = 1.0 (4 x 0.5 mm)", shape=shape, friction=1.0, slide_frames=4)
+            for what, shape in (("cube edge", "cube_edge"), ("cone tip rounded to 0.5 mm", "rounded_cone"),
+                                ("flat punch", "flat_punch"))]
     out += [Case(f"slide mu = {mu} (20 % deep, 4 x 0.5 mm)", friction=mu, depth=0.2, slide_frames=4)
             for mu in (0.2, 1.0)]
     out += [Case("starts 1 mm inside the gel", start_gap=-0.2, expect_error="IndenterStartsInsideGel")]

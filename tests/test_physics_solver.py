@@ -127,12 +127,14 @@ def _press_sphere(settings: SolverSettings, depth: float = 0.3):
 
 def test_cg_linear_solver_matches_direct_and_falls_back_when_it_cannot_converge():
     """The GPU path (Warp CG, here on the CPU) gives the direct solver's frame; a CG that cannot reach its
-    tolerance (1 iteration allowed) hands that system to the direct solver instead of returning a bad step."""
+    tolerance (1 iteration allowed) hands that system to the direct solver instead of returning a bad step.
+    (The direct path takes the exact elastic Hessian where it is positive definite, CG the clamped one: the two
+    Newton paths differ, so friction's lag ends in a slightly different place; forces agree to 1e-6 of |F|.)"""
     _, direct = _press_sphere(SolverSettings(linear_solver="direct", newton_tol_mm=1e-6))
     cg, by_cg = _press_sphere(SolverSettings(linear_solver="cg", newton_tol_mm=1e-6))
     scale = np.abs(direct.displacement_mm).max()
     np.testing.assert_allclose(by_cg.displacement_mm, direct.displacement_mm, atol=1e-5 * scale)
-    np.testing.assert_allclose(by_cg.forces_n, direct.forces_n, rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(by_cg.forces_n, direct.forces_n, rtol=1e-5, atol=1e-6 * np.abs(direct.forces_n).max())
     assert cg._linear.cg_fallbacks == 0
     cg._linear.cg_maxiter = 1
     P = _lift(4.0 - 0.35)

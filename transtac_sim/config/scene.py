@@ -73,6 +73,9 @@ class Physics(_Strict):
     degree: Literal[1, 2] = Field(default=2, description="1: linear tets (fast, stiffer); 2: quadratic (accurate)")
     newton_tol_mm: float = Field(default=1e-4, gt=0.0, le=1.0)
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    friction_slip_mm: float = Field(
+        default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point creeps up to this far per "
+        "frame before friction reaches mu times the pressure (0.01: stricter sticking, about 1.5x the Newton iterations)")
     linear_solver: Literal["auto", "direct", "cg"] = Field(
         default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
         "auto: cg on a GPU, else direct")

@@ -12,10 +12,12 @@ not lock, while the fully integrated mu-term keeps the stiffness matrix free of 
 Gradient (N):   mu F : grad v  +  s cof(F) : grad v,          s = lam (J - alpha)
 Hessian:        mu grad du : grad v + lam (cof F : grad du)(cof F : grad v) + s_h dcof(F)[grad du] : grad v
 
-with cof(F) = dJ/dF = [f1 x f2, f2 x f0, f0 x f1] (columns f_i of F). ``s_h`` is ``s`` clamped to
-[-mu/sigma_max, mu/sigma_max] (sigma_max the largest singular value of F) times ``geometric``; clamping
-keeps the twist/flip eigenvalues mu +- s sigma_k of the Hessian non-negative (Smith et al. 2018, Sec. 4),
-and ``geometric = 0`` gives the Gauss-Newton Hessian used as a fall-back.
+with cof(F) = dJ/dF = [f1 x f2, f2 x f0, f0 x f1] (columns f_i of F). ``s_h`` is ``geometric`` times
+either ``s`` itself (the exact Hessian) or, with ``clamp``, ``s`` clamped to [-mu/sigma_max, mu/sigma_max]
+(sigma_max the largest singular value of F); clamping keeps the twist/flip eigenvalues mu +- s sigma_k of the
+Hessian non-negative (Smith et al. 2018, Sec. 4) but makes it inexact where it acts, which turns Newton's
+quadratic convergence linear. The Newton loop (newton.py) takes the exact Hessian where it is positive
+definite, else the clamped one, and ``geometric = 0`` (the Gauss-Newton Hessian) as the last fall-back.
 """
 
 from __future__ import annotations
@@ -101,11 +103,12 @@ def volumetric_state_form(
     u: fem.Field,
     params: wp.array(dtype=wp.vec2d),
     geometric: wp.float64,
+    clamp: int,
     F_qp: wp.array(dtype=wp.mat33d),
     p_qp: wp.array(dtype=wp.float64),
 ):
-    """Stores F and the clamped pressure s_h at each quadrature point, so that the Hessian's assembly (which
-    evaluates its integrand once per pair of degrees of freedom) does not repeat the SVD."""
+    """Stores F and the pressure s_h (clamped if ``clamp``) at each quadrature point, so that the Hessian's
+    assembly (which evaluates its integrand once per pair of degrees of freedom) does not repeat the SVD."""
     F = deformation_gradient(fem.grad(u, s))
     mu = params[s.element_index][0]
     lam = params[s.element_index][1]
@@ -116,7 +119,9 @@ def volumetric_state_form(
     wp.svd3(F, U, sig, V)
     bound = mu / wp.max(wp.max(wp.abs(sig[0]), wp.abs(sig[1])), wp.max(wp.abs(sig[2]), _f(1.0e-6)))
     F_qp[s.qp_index] = F
-    p_qp[s.qp_index] = geometric * wp.clamp(p, -bound, bound)
+    if clamp != 0:
+        p = wp.clamp(p, -bound, bound)
+    p_qp[s.qp_index] = geometric * p
 
 
 @fem.integrand

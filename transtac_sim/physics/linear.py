@@ -4,6 +4,8 @@
   rows/columns only (see ``_factorise``). Fastest on the CPU for the mesh sizes used here. The factorisation is kept: later Newton steps are
   solved by conjugate gradients preconditioned with it (a few iterations while the Hessian has changed
   little) and the matrix is factorised again only when that does not converge in ``reuse_max_iterations``.
+  ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD finds the matrix is not
+  positive definite (Newton then takes the clamped Hessian, see newton.py).
 - ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the
   GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``. Where CG
   does not reach its tolerance in ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a
@@ -36,8 +38,9 @@ class _Factor:
         self.solve, self.shape, self.kind = solve, shape, kind
 
 
-def _factorise(A: sp.csc_matrix) -> _Factor:
-    """Factorises the (symmetric, normally positive definite) free-dof Hessian.
+def _factorise(A: sp.csc_matrix, definite: bool = False) -> _Factor | None:
+    """Factorises the (symmetric, normally positive definite) free-dof Hessian; with ``definite``, None where
+    CHOLMOD finds it is not positive definite (the caller then tries a Hessian that is).
 
     CHOLMOD's supernodal Cholesky (scikit-sparse) when installed: for P2 meshes of 10^4-10^5 dofs it is an
     order of magnitude faster than SuperLU. Otherwise, or if the matrix is not positive definite, SuperLU:
@@ -51,7 +54,8 @@ def _factorise(A: sp.csc_matrix) -> _Factor:
             factor = cholesky(A)
             return _Factor(factor.solve_A, A.shape, "cholmod")
         except CholmodNotPositiveDefiniteError:
-            pass
+            if definite:
+                return None
     except ImportError:  # e.g. the GPU bundle has no CHOLMOD
         pass
     b = A @ np.ones(A.shape[0])
@@ -126,38 +130,47 @@ class LinearSolver:
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
         self._static: tuple[int, sp.csr_matrix] | None = None
 
-    def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array) -> wp.array:
-        """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed."""
+    def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array, definite: bool = False) -> wp.array | None:
+        """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed. With
+        ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge)."""
         parts = H if isinstance(H, (list, tuple)) else [H]
         self._last_free = None
         if self.method == "cg":
             x = self._solve_cg(parts, rhs)
             if x is not None:
                 return x
+            if definite:
+                return None
             self.cg_fallbacks += 1
-        return self._solve_direct(parts, rhs)
+        return self._solve_direct(parts, rhs, definite)
 
-    def _solve_direct(self, parts: list[BsrMatrix], rhs: wp.array) -> wp.array:
+    def _solve_direct(self, parts: list[BsrMatrix], rhs: wp.array, definite: bool = False) -> wp.array | None:
         if self._static is None or self._static[0] != id(parts[0]):  # parts[0] is reused: convert it once
             self._static = (id(parts[0]), bsr_to_scipy(parts[0]))
         A = self._static[1]
         for P in parts[1:]:
             A = A + bsr_to_scipy(P)
         A = A[self._free][:, self._free].tocsc()
-        self._last_free = A
         b = rhs.numpy().reshape(-1)[self._free]
+        x_free = self._solve_free(A, b, definite)
+        if x_free is None:
+            return None
+        self._last_free = A
         x = np.zeros(3 * self._node_count)
-        x[self._free] = self._solve_free(A, b)
+        x[self._free] = x_free
         return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
 
-    def _solve_free(self, A: sp.csc_matrix, b: np.ndarray) -> np.ndarray:
+    def _solve_free(self, A: sp.csc_matrix, b: np.ndarray, definite: bool = False) -> np.ndarray | None:
         if self._lu is not None and self._lu.shape == A.shape:
             x, iterations = _pcg(A, b, self._lu.solve, self.reuse_rtol, self.reuse_max_iterations)
             if x is not None:
                 self.last_iterations = iterations
                 return x
-        self._lu = _factorise(A)
+        factor = _factorise(A, definite)
         self.factorisations += 1
+        if factor is None:
+            return None
+        self._lu = factor
         self.last_iterations = 1
         return self._lu.solve(b)
 

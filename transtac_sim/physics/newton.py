@@ -17,6 +17,20 @@ replaced each source (scripts/fem_frame_timing.py, BENCHMARKS.md ``fem_newton_it
   Newton goes on from there (``_raise_stiffness``).
 - The line search accepted steps that invert an element and the step then failed after the fact (and was
   sub-stepped); it now rejects them (det F <= 0 at any quadrature point of ``_min_det``).
+
+Issue 12, second pass (scripts/fem_frame_timing.py; scripts/fem_stability.py's slide cases):
+
+- Friction's stick-slip switch was the main cost: without friction the same frames take 5-7 iterations.
+  ``SolverSettings.slip_eps_mm`` is 0.05 mm instead of 0.01 mm (see there).
+- The volumetric Hessian's geometric term was always clamped (elasticity.py), which makes the Hessian inexact
+  wherever the clamp acts and the end of Newton linear instead of quadratic (seen on the slides: steps
+  shrinking 4x per iteration). The exact Hessian is tried first and the clamped one only where CHOLMOD finds
+  the exact one is not positive definite (``_hessian_ladder``).
+- The line search halved the step; it now jumps to the minimiser of the parabola through E(0), E'(0) and
+  E(alpha) (within [0.1, 0.5] alpha, Nocedal & Wright 3.5), which lands nearer the minimum along the Newton
+  direction when friction makes the full step overshoot.
+- Where a slide starts the last increment points the wrong way (down); the warm start also tries u_prev
+  carried along by the indenter's tangential translation (``_carried``): the dent starts where it will be.
 """
 
 from __future__ import annotations
@@ -24,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 import warp.fem as fem
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 
@@ -41,8 +56,9 @@ class NewtonSteps:
         the new gradient with the last Hessian (CG preconditioned with its kept factorisation: no assembly, no
         factorisation), otherwise it is the full Newton step itself. At convergence a penetration above
         ``penetration_tol_mm`` raises the contact stiffness (``_raise_stiffness``) and Newton goes on from
-        there. The Armijo back-tracking line search on E never accepts a step that makes any det F <= 0.
-        Iterations count Hessian assemblies."""
+        there. The Armijo back-tracking line search on E (quadratic interpolation) never accepts a step that
+        makes any det F <= 0. Iterations count Newton steps (each assembles the exact Hessian and, where that is
+        not positive definite, the clamped or Gauss-Newton one)."""
         s = self.settings
         tol = s.newton_tol_mm
         friction = any(i.friction > 0 for i in self.indenters)
@@ -73,8 +89,12 @@ class NewtonSteps:
                 return False, iterations, "Newton iteration limit reached" + why, 0.0
             iterations += 1
             energy = self._energy(self.u, ind)
-            for geometric in (1.0, 0.0):
-                du = self._linear.solve(self._hessian(ind, geometric), wp.array(-g_np, dtype=wp.vec3d, device=self.device))
+            rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
+            for geometric, clamp in self._hessian_ladder():
+                du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=not clamp)
+                if du is None:  # the exact Hessian is not positive definite here
+                    self.stats["indefinite_hessians"] += 1
+                    continue
                 du_np = du.numpy()
                 slope = float(np.sum(du_np * g_np))
                 step_max = float(np.max(np.abs(du_np)))
@@ -91,7 +111,12 @@ class NewtonSteps:
                     if self._min_det(self._u_try) > 0.0:
                         break
                     inverted = True
-                alpha *= 0.5
+                    alpha *= 0.5
+                elif np.isfinite(e_try) and e_try > energy + slope * alpha:
+                    # the minimiser of the parabola through E(0), E'(0) and E(alpha), kept within [0.1, 0.5] alpha
+                    alpha *= float(np.clip(-0.5 * slope * alpha / (e_try - energy - slope * alpha), 0.1, 0.5))
+                else:
+                    alpha *= 0.5
                 self.stats["backtracks"] += 1
             else:  # converged (a full step below the tolerance) or, below 100 x tol, E differs by round-off only
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
@@ -111,6 +136,13 @@ class NewtonSteps:
                 continue
             wp.copy(self.u.dof_values, self._u_try.dof_values)
             full_step = alpha == 1.0
+
+    def _hessian_ladder(self) -> tuple[tuple[float, bool], ...]:
+        """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one (host solver only:
+        CHOLMOD tells at once when it is not positive definite, CG on the device would not), the clamped
+        one, then Gauss-Newton (elasticity.py)."""
+        exact = ((1.0, False),) if self._linear.method == "direct" else ()
+        return exact + ((1.0, True), (0.0, True))
 
     def _move_lag(self, ind, remaining: float) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
@@ -150,26 +182,72 @@ class NewtonSteps:
         return np.concatenate(parts)
 
     def _warm_start(self, ind, step: np.ndarray) -> bool:
-        """u = u_prev + s du_last: the last converged increment scaled to this step's pose increment
-        (s = <step, step_last> / |step_last|^2, clipped to [0, 1]), if that keeps det F > 0 and lowers E;
-        else u = u_prev. On a steady press or slide this starts Newton next to the solution. True if it did, and
-        the largest penetration there is within 2x the last step's plus ``penetration_tol_mm`` (a guess whose
-        contact can serve as friction's first lag)."""
+        """Starts Newton from the lowest-energy guess with det F > 0 among u_prev and
+
+        - u_prev + s du_last: the last converged increment scaled to this step's pose increment
+          (s = <step, step_last> / |step_last|^2, clipped to [0, 1]): on a steady press or slide this starts
+          Newton next to the solution;
+        - u_prev carried along by the indenter's tangential (x, y) translation d, u(X) = u_prev(X - d) (one
+          indenter only): the dent moves with the indenter where a slide starts (the step turns from a press,
+          so the last increment points the wrong way).
+
+        True if a guess was taken and the largest penetration there is within 2x the last step's plus
+        ``penetration_tol_mm`` (a guess whose contact can serve as friction's first lag)."""
         wp.copy(self.u.dof_values, self.u_prev.dof_values)
-        if self._increment is None:
+        best_e = self._energy(self.u, ind)
+        pen_last = self._increment[2] if self._increment is not None else 0.0
+        taken = False
+        for guess in self._guesses(step):
+            wp.copy(self._u_try.dof_values, guess)
+            if self._min_det(self._u_try) > 0.0:
+                e = self._energy(self._u_try, ind)
+                if e < best_e:
+                    wp.copy(self.u.dof_values, self._u_try.dof_values)
+                    best_e, taken = e, True
+        if not taken:
             return False
-        du_last, step_last, pen_last = self._increment
-        norm2 = float(np.dot(step_last, step_last))
-        scale = float(np.clip(np.dot(step, step_last) / norm2, 0.0, 1.0)) if norm2 > 0.0 else 0.0
-        if scale == 0.0:
-            return False
-        wp.copy(self._u_try.dof_values, self.u_prev.dof_values)
-        fem.linalg.array_axpy(x=du_last, y=self._u_try.dof_values, alpha=scale)
-        if self._min_det(self._u_try) > 0.0 and self._energy(self._u_try, ind) < self._energy(self.u, ind):
-            wp.copy(self.u.dof_values, self._u_try.dof_values)
-            self.stats["warm_starts"] += 1
-            return self._max_penetration(ind) <= 2.0 * pen_last + self.settings.penetration_tol_mm
-        return False
+        self.stats["warm_starts"] += 1
+        return self._max_penetration(ind) <= 2.0 * pen_last + self.settings.penetration_tol_mm
+
+    def _guesses(self, step: np.ndarray):
+        """The warm start's candidate dof values (see ``_warm_start``)."""
+        if self._increment is not None:
+            du_last, step_last, _ = self._increment
+            norm2 = float(np.dot(step_last, step_last))
+            scale = float(np.clip(np.dot(step, step_last) / norm2, 0.0, 1.0)) if norm2 > 0.0 else 0.0
+            if scale > 0.0:
+                guess = wp.clone(self.u_prev.dof_values)
+                fem.linalg.array_axpy(x=du_last, y=guess, alpha=scale)
+                yield guess
+        shift = np.array([step[0], step[1], 0.0]) if len(self.indenters) == 1 else np.zeros(3)
+        if np.linalg.norm(shift) > self.settings.newton_tol_mm:
+            yield self._carried(shift)
+
+    def _carried(self, shift: np.ndarray) -> wp.array:
+        """Dof values of u_prev(X - shift) (u_prev itself at nodes whose X - shift is outside the gel)."""
+        if getattr(self, "_locator", None) is None:
+            V, T = self.vertices_mm, self.tets
+            M = np.stack([V[T[:, k]] - V[T[:, 0]] for k in (1, 2, 3)], axis=2)  # columns: edges from vertex 0
+            self._locator = (cKDTree(V[T].mean(axis=1)), np.linalg.inv(M), self._space.node_positions().numpy())
+        tree, M_inv, X = self._locator
+        Y = X - shift
+        _, near = tree.query(Y, k=min(16, len(self.tets)))
+        lam = np.einsum("nkij,nkj->nki", M_inv[near], Y[:, None, :] - self.vertices_mm[self.tets[near, 0]])
+        inside = (lam.min(axis=2) >= -1e-9) & (lam.sum(axis=2) <= 1.0 + 1e-9)
+        found = inside.any(axis=1)
+        pick = np.argmax(inside, axis=1)
+        rows = np.flatnonzero(found)
+        values = self.u_prev.dof_values.numpy().copy()
+        if rows.size:
+            cells = near[rows, pick[rows]].astype(np.int32)
+            coords = lam[rows, pick[rows]]
+            q = fem.PicQuadrature(self._cells, (wp.array(cells, dtype=int, device=self.device),
+                                                 wp.array(coords, dtype=wp.vec3d, device=self.device)))
+            out = wp.empty(rows.size, dtype=wp.vec3d, device=self.device)
+            fem.interpolate(_value_form, dest=out, at=q, fields={"u": self.u_prev})
+            values[rows] = out.numpy()
+        values[self._fixed_nodes] = 0.0
+        return wp.array(values, dtype=wp.vec3d, device=self.device)
 
     def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str, float]:
         """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result."""
@@ -189,3 +267,8 @@ class NewtonSteps:
             fem.linalg.array_axpy(x=self.u_prev.dof_values, y=du, alpha=-1.0)
             self._increment = (du, step, pen)
         return ok, iterations, why, pen
+
+
+@fem.integrand
+def _value_form(s: fem.Sample, u: fem.Field):
+    return u(s)

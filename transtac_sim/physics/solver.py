@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -31,58 +30,13 @@ from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
 from transtac_sim.physics.newton import NewtonSteps
-
-
-class SolverDidNotConverge(RuntimeError):
-    """A frame could not be solved even after load sub-stepping."""
-
-
-class IndenterStartsInsideGel(ValueError):
-    """An indenter's start pose already penetrates the undeformed gel."""
-
-
-@dataclass(frozen=True)
-class SolverSettings:
-    degree: int = 2  # element order (1: linear tets, 2: quadratic tets)
-    newton_tol_mm: float = 1.0e-5  # converged when max |Newton step| is below this
-    max_newton_iterations: int = 40
-    max_substep_halvings: int = 5  # up to 2**5 sub-steps per frame
-    # "direct" (CHOLMOD/SuperLU on the host), "cg" (Warp, on the device); "auto": cg on a GPU, else direct
-    # (on an H100, cg solves the press-and-slide frames about 20x faster than the host factorisation)
-    linear_solver: str = "auto"
-    contact_stiffness: float | None = None  # N/mm^3; None: stiffness_factor * E_top / (h_top / degree)
-    stiffness_factor: float = 100.0
-    penetration_tol_mm: float = 0.02  # stated bound on residual interpenetration at convergence
-    max_stiffness_raises: int = 3  # per step: contact stiffness raised while the penetration is above the bound
-    slip_eps_mm: float = 1.0e-2  # friction smoothing: slips below this are elastic sticking
-    friction_lag_iterations: int = 4  # per step: friction's lag moved to the current u at most this often
-    contact_quadrature_order: int | None = None  # None: 2 * degree
-    fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
-
-
-@dataclass
-class SolverRecord:
-    converged: bool
-    iterations: int
-    residual: float  # |gradient| (N) on the free dofs at the solution
-    min_det_f: float
-    seconds: float
-    substeps: int
-    max_penetration_mm: float = 0.0
-    linear_iterations: int = 0
-    backtracks: int = 0  # line-search halvings, all (sub)steps of the frame
-    stiffness_raises: int = 0  # contact stiffness raised during the frame (kept for the next ones)
-    warm_starts: int = 0  # (sub)steps started from the extrapolated increment rather than the last state
-    lag_updates: int = 0  # friction's lag moved inside Newton, all (sub)steps of the frame
-
-
-@dataclass
-class FrameResult:
-    displacement_mm: np.ndarray  # (N,3) at the input vertices
-    forces_n: np.ndarray  # (n_indenters, 3) force each indenter applies to the gel (pressing: fz < 0)
-    torques_nmm: np.ndarray  # (n_indenters, 3) about each indenter's reference point (pose origin)
-    record: SolverRecord
-    poses: list = field(default_factory=list)
+from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solver's API)
+    FrameResult,
+    IndenterStartsInsideGel,
+    SolverDidNotConverge,
+    SolverRecord,
+    SolverSettings,
+)
 
 
 def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
@@ -270,8 +224,9 @@ class QuasiStaticSolver(NewtonSteps):
                           values={"st": self._contact_state}, output=g, add=True)
         return g
 
-    def _hessian(self, ind, geometric: float):
-        """The Hessian as a list of BSR matrices whose sum it is (the linear solver adds them up).
+    def _hessian(self, ind, geometric: float, clamp: bool = True):
+        """The Hessian as a list of BSR matrices whose sum it is (the linear solver adds them up); ``geometric``
+        and ``clamp`` select the volumetric term's geometric part (elasticity.py).
 
         The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and reused."""
         vals = {"params": self._params}
@@ -282,7 +237,7 @@ class QuasiStaticSolver(NewtonSteps):
         parts = [self._H_dev]
         qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
         fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
-                        values=vals | qp | {"geometric": geometric})
+                        values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
         parts.append(fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol, fields=f,
                                    values=vals | qp, output_dtype=wp.float64))
         if ind.count:
@@ -398,6 +353,7 @@ class QuasiStaticSolver(NewtonSteps):
             stiffness_raises=self.stats["stiffness_raises"],
             warm_starts=self.stats["warm_starts"],
             lag_updates=self.stats["lag_updates"],
+            indefinite_hessians=self.stats["indefinite_hessians"],
         )
         self._poses = poses
         self.frame_index += 1

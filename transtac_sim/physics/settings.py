@@ -1,0 +1,65 @@
+"""The quasi-static solver's settings, per-frame record and result, and its errors (used by solver.py,
+newton.py and trajectory.py; importable from ``transtac_sim.physics``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class SolverDidNotConverge(RuntimeError):
+    """A frame could not be solved even after load sub-stepping."""
+
+
+class IndenterStartsInsideGel(ValueError):
+    """An indenter's start pose already penetrates the undeformed gel."""
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    degree: int = 2  # element order (1: linear tets, 2: quadratic tets)
+    newton_tol_mm: float = 1.0e-5  # converged when max |Newton step| is below this
+    max_newton_iterations: int = 40
+    max_substep_halvings: int = 5  # up to 2**5 sub-steps per frame
+    # "direct" (CHOLMOD/SuperLU on the host), "cg" (Warp, on the device); "auto": cg on a GPU, else direct
+    # (on an H100, cg solves the press-and-slide frames about 20x faster than the host factorisation)
+    linear_solver: str = "auto"
+    contact_stiffness: float | None = None  # N/mm^3; None: stiffness_factor * E_top / (h_top / degree)
+    stiffness_factor: float = 100.0
+    penetration_tol_mm: float = 0.02  # stated bound on residual interpenetration at convergence
+    max_stiffness_raises: int = 3  # per step: contact stiffness raised while the penetration is above the bound
+    # friction smoothing (mm): slips below this are elastic sticking (a sticking point creeps up to this far
+    # per step before friction reaches mu times the normal pressure). 0.05 rather than 0.01: the stick-slip
+    # switch is 5x less stiff, which cuts Newton's iterations on frictional frames by a third to a half
+    # (scripts/fem_frame_timing.py on tests/fixtures/tiny_press.toml: 12, 15 -> 8, 9), forces within 2 %
+    slip_eps_mm: float = 5.0e-2
+    friction_lag_iterations: int = 4  # per step: friction's lag moved to the current u at most this often
+    contact_quadrature_order: int | None = None  # None: 2 * degree
+    fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
+
+
+@dataclass
+class SolverRecord:
+    converged: bool
+    iterations: int
+    residual: float  # |gradient| (N) on the free dofs at the solution
+    min_det_f: float
+    seconds: float
+    substeps: int
+    max_penetration_mm: float = 0.0
+    linear_iterations: int = 0
+    backtracks: int = 0  # line-search halvings, all (sub)steps of the frame
+    stiffness_raises: int = 0  # contact stiffness raised during the frame (kept for the next ones)
+    warm_starts: int = 0  # (sub)steps started from the extrapolated increment rather than the last state
+    lag_updates: int = 0  # friction's lag moved inside Newton, all (sub)steps of the frame
+    indefinite_hessians: int = 0  # Newton steps whose exact Hessian was not positive definite (clamped instead)
+
+
+@dataclass
+class FrameResult:
+    displacement_mm: np.ndarray  # (N,3) at the input vertices
+    forces_n: np.ndarray  # (n_indenters, 3) force each indenter applies to the gel (pressing: fz < 0)
+    torques_nmm: np.ndarray  # (n_indenters, 3) about each indenter's reference point (pose origin)
+    record: SolverRecord
+    poses: list = field(default_factory=list)
