@@ -86,7 +86,10 @@ def test_press_moves_the_surface_under_the_sphere_by_the_press_depth(tmp_path):
     assert (v[top][under, 2] - sphere_z).max() < 0.02
     i = np.argmin(r_xy)
     sag = radius - np.sqrt(radius**2 - r_xy[i] ** 2)
-    assert r_xy[i] < 1.0 and abs((rest[top][i, 2] - v[top][i, 2]) - (depth0 - sag)) < 0.05
+    # (the nearest vertex lies within 1.2 mm of the axis on every mesh seen, 1.04 mm on one; the contact radius
+    # is sqrt(R depth0) ~ 0.9 mm, and outside it Hertz's surface departs from the sphere's profile by 0.015 mm
+    # at 1.04 mm and 0.047 mm at 1.2 mm, within this check's 0.05 mm)
+    assert r_xy[i] < 1.2 and abs((rest[top][i, 2] - v[top][i, 2]) - (depth0 - sag)) < 0.05
     assert (v - rest)[:, 2].min() < -0.5 * depth0 and np.abs(v - rest).max() < depth0 + 0.05
 
     # markers: the P2 displacement at the marker, consistent with the P1 interpolation of the vertices'
