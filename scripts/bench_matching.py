@@ -62,10 +62,7 @@ def stack_of_dataset(dataset: Path, hardware: str | None) -> tuple[dict, str]:
         relative_to = Path(m["scene_file"]).parent
     hardware = hardware or "transtac"
     sensor = build_sensor(hardware, relative_to=relative_to)
-    h = sensor.hardware.backing.thickness_mm
-    stack = {"point_mm": [0.0, 0.0, float(sensor.gel_origin_in_left_mm[2]) - h], "normal": [0.0, 0.0, 1.0],
-             "backing_thickness_mm": h, "n_backing": sensor.backing.refractive_index,
-             "n_gel": sensor.gel.refractive_index, "gel_thickness_mm": float(sensor.gel_size_mm[2])}
+    stack = sensor.flat_stack_json()
     calib = json.loads((dataset / "calibration.json").read_text())
     same = all(np.allclose(calib[k], v) for k, v in sensor.calibration_json().items() if k not in ("model", "units"))
     return stack, hardware + ("" if same else " (its calibration differs from the dataset's!)")

@@ -78,6 +78,14 @@ class Sensor:
             "units": "mm",
         }
 
+    def flat_stack_json(self) -> dict:
+        """The flat layers in front of the cameras (backing, gel) as the perception package's refraction-aware
+        triangulation reads them (``perception/stereo/triangulation.py``), left camera frame, mm."""
+        h = self.hardware.backing.thickness_mm
+        return {"point_mm": [0.0, 0.0, float(self.gel_origin_in_left_mm[2]) - h], "normal": [0.0, 0.0, 1.0],
+                "backing_thickness_mm": h, "n_backing": self.backing.refractive_index,
+                "n_gel": self.gel.refractive_index, "gel_thickness_mm": float(self.gel_size_mm[2])}
+
 
 def _material(name: str, kind: type, source: Path, key: str, relative_to: Path):
     try:

@@ -238,7 +238,7 @@ def _render_set(sweep: Sweep, values: dict, root: Path, folder: Path) -> dict:
 
 def run_render_task(task: RenderTask) -> list[dict]:
     """Render one set and score every point that uses it; returns their results (also written to disk)."""
-    from transtac_sim.sweep.scoring import flat_stack_of, score_dataset
+    from transtac_sim.sweep.scoring import score_dataset
 
     sweep = load_sweep(task.sweep_path)
     root = Path(task.root)
@@ -249,7 +249,7 @@ def run_render_task(task: RenderTask) -> list[dict]:
         rendered = _render_set(sweep, task.points[0][1], root, folder)
         render_seconds = time.perf_counter() - t0
         setups = point_setups(sweep, task.points[0][1], root)
-        stack, markers = flat_stack_of(setups[0].sensor), len(setups[0].sensor.markers_rest_gel_mm)
+        stack, markers = setups[0].sensor.flat_stack_json(), len(setups[0].sensor.markers_rest_gel_mm)
         fem = _fem_seconds(root, setups, sweep.file.benchmark.frames)
     except Exception as e:  # noqa: BLE001 -- a failing point is recorded and the sweep goes on
         reason = _reason(e)

@@ -45,13 +45,6 @@ def _detector(method: str, width: int, height: int):
     return make_detector(method, None, "cpu", images=[(f"a {width}x{height} benchmark image", np.zeros((height, width, 3), np.uint8))])[0]
 
 
-def flat_stack_of(sensor) -> dict:
-    """The flat stack (backing + gel) of a simulated sensor, as ``stereo.triangulation`` reads it."""
-    h = sensor.hardware.backing.thickness_mm
-    return {"point_mm": [0.0, 0.0, float(sensor.gel_origin_in_left_mm[2]) - h], "normal": [0.0, 0.0, 1.0],
-            "backing_thickness_mm": h, "n_backing": sensor.backing.refractive_index, "n_gel": sensor.gel.refractive_index}
-
-
 def nearest_id(uv: np.ndarray, truth_uv: np.ndarray, ids: np.ndarray, radius_px: float = RADIUS_PX) -> np.ndarray:
     """Per detection, the id of the nearest true marker within ``radius_px``, else -1."""
     if len(uv) == 0 or len(truth_uv) == 0:

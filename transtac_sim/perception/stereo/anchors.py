@@ -32,6 +32,7 @@ from transtac_sim.perception.stereo.triangulation import (
     _closest_points_midpoint,
     rays_in_gel,
     refract,
+    stereo_rays,
 )
 
 
@@ -48,8 +49,8 @@ class Anchors:
 
 
 def rays_beyond_gel(stack: FlatStack, centre: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where rays (unit ``directions`` (K, 3) from ``centre``, left frame) leave the gel's flat contact
-    surface (K, 3) mm, and their unit directions in the air beyond it (K, 3)."""
+    """Where rays (unit ``directions`` (K, 3) from ``centre``, (3,) or one per ray, left frame) leave the
+    gel's flat contact surface (K, 3) mm, and their unit directions in the air beyond it (K, 3)."""
     at_bond, d = rays_in_gel(stack, centre, directions)
     n = stack.normal
     at_surface = at_bond + (stack.gel_thickness_mm / (d @ n))[:, None] * d
@@ -59,14 +60,9 @@ def rays_beyond_gel(stack: FlatStack, centre: np.ndarray, directions: np.ndarray
 def triangulate_beyond_gel(calib: StereoCalibration, stack: FlatStack, left_uv: np.ndarray,
                            right_uv: np.ndarray) -> np.ndarray:
     """Points (K, 3) mm, left camera frame, beyond the gel, of matched recorded pixels (K, 2)."""
-    def directions(uv: np.ndarray, camera: str, R: np.ndarray) -> np.ndarray:
-        xy = calib.normalised(uv, camera)
-        d = np.column_stack([xy, np.ones(len(xy))]) @ R
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-    pl, dl = rays_beyond_gel(stack, np.zeros(3), directions(left_uv, "left", np.eye(3)))
-    pr, dr = rays_beyond_gel(stack, calib.right_centre_mm, directions(right_uv, "right", calib.R))
-    return _closest_points_midpoint(pl, dl, pr, dr)
+    k = len(left_uv)
+    p, d = rays_beyond_gel(stack, *stereo_rays(calib, left_uv, right_uv))
+    return _closest_points_midpoint(p[:k], d[:k], p[k:], d[k:])
 
 
 def feature_pairs(calib: StereoCalibration, left_bgr: np.ndarray, right_bgr: np.ndarray, max_disparity_px: float,

@@ -138,18 +138,24 @@ def _closest_points_midpoint(p: np.ndarray, u: np.ndarray, q: np.ndarray, v: np.
     return 0.5 * (p + s[:, None] * u + q + t[:, None] * v)
 
 
-def triangulate_refracted(calib: StereoCalibration, stack: FlatStack, left_uv: np.ndarray,
-                          right_uv: np.ndarray) -> np.ndarray:
-    """Points (K, 3) mm, left camera frame, of matched recorded pixels (K, 2) through ``stack``."""
+def stereo_rays(calib: StereoCalibration, left_uv: np.ndarray, right_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres and unit directions (2K, 3) in the left frame of the rays through recorded pixels
+    ``left_uv`` then ``right_uv`` (K, 2 each), before any refraction."""
     k = len(left_uv)
-    if k == 0:
-        return np.zeros((0, 3))
-    # both cameras' rays traced at once: the left ones, then the right ones
     xy = np.concatenate([calib.normalised(left_uv, "left"), calib.normalised(right_uv, "right")])
     d = np.column_stack([xy, np.ones(len(xy))])
     d[k:] = d[k:] @ calib.R  # R^T applied to each row: right camera -> left frame
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     centres = np.zeros_like(d)
     centres[k:] = calib.right_centre_mm
-    p, d = rays_in_gel(stack, centres, d)
+    return centres, d
+
+
+def triangulate_refracted(calib: StereoCalibration, stack: FlatStack, left_uv: np.ndarray,
+                          right_uv: np.ndarray) -> np.ndarray:
+    """Points (K, 3) mm, left camera frame, of matched recorded pixels (K, 2) through ``stack``."""
+    k = len(left_uv)
+    if k == 0:
+        return np.zeros((0, 3))
+    p, d = rays_in_gel(stack, *stereo_rays(calib, left_uv, right_uv))  # both cameras' rays at once
     return _closest_points_midpoint(p[:k], d[:k], p[k:], d[k:])
