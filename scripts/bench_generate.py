@@ -1,7 +1,10 @@
 """Labelled stereo frames per hour of `transtac-sim generate`, and how the time splits over the stages.
 
     .venv/bin/python scripts/bench_generate.py [--scene scenes/train_random.toml] [--sequences 2] [--frames 4]
-        [--workers K] [--executor local|ray]
+        [--workers K] [--executor local|ray] [--md-out FILE]
+
+On a one-GPU machine ``--workers K`` runs K sequences at once on the GPU (local processes). After each
+sequence it prints the frames processed so far and their rate, so that a run cut short still says something.
 
 Runs the generator into a temporary folder, reads the per-stage seconds from its manifest, and writes a
 table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
@@ -34,6 +37,7 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
          workers: int = typer.Option(1, min=1),
          executor: str = typer.Option("local", help="local, or ray (on a machine with GPUs: one sequence per GPU)"),
+         md_out: Path | None = typer.Option(None, help="also write the section's markdown to this file"),
          write: bool = typer.Option(True, help="update BENCHMARKS.md"),
          section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),
          mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes")) -> None:
@@ -45,13 +49,17 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
     cached_before = set(cache_dir().glob("*.npz"))
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
+        def progress(done: int, total: int) -> None:  # after each sequence: a run cut short still tells its rate
+            t = time.perf_counter() - t0
+            print(f"[{t:.0f} s] {done}/{total} frames, {3600 * done / t:.0f} frames per hour so far", flush=True)
+
         report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers,
-                          executor=executor)
+                          executor=executor, on_frames=progress)
         wall = time.perf_counter() - t0
         manifest = json.loads((Path(tmp) / "ds" / "manifest.json").read_text())
-    import mitsuba as mi
+    from transtac_sim.rendering.mitsuba_env import select_variant
 
-    variant = mi.variant()
+    variant = select_variant().variant()  # the workers' automatic choice (the main process renders nothing)
     n = report.frames_done
     stage_total = sum(report.timings.values())
     rows = [f"| {k} | {v:.2f} | {v / max(n, 1):.3f} | {100 * v / stage_total:.0f} % |" for k, v in
@@ -76,6 +84,8 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         md += "\n\nFailed frames (each stops the rest of its sequence, which is recorded as not simulated):\n\n" + "\n".join(
             f"- {f['sequence']}/{f['frame']:06d}: {f.get('reason', '')}" for f in causes)
     print(md)
+    if md_out:
+        md_out.write_text(md + "\n")
     if write:
         update_section(REPO / "BENCHMARKS.md", section, md)
 

@@ -80,3 +80,27 @@ def test_cache_is_hit_on_the_second_call():
     assert not first.cache_hit and second.cache_hit and first.cache_key == second.cache_key
     assert np.array_equal(first.mesh.tets, second.mesh.tets)
     assert np.array_equal(first.mesh.vertices_mm, second.mesh.vertices_mm)
+
+
+def test_cache_key_follows_placement_not_appearance_or_last_bits():
+    """The key hashes the configured inputs of the contact region (a cache made on another machine, whose BLAS
+    rounds the posed indenter's last bits differently, is found), not colour or friction; a move changes it."""
+    import dataclasses
+
+    from transtac_sim.meshing import cache, region_inputs
+
+    setup = load_setup(REPO / "scenes" / "press_slide.toml")
+
+    def with_indenter(**update):
+        ind = setup.indenters[0]
+        placed = dataclasses.replace(ind, config=ind.config.model_copy(update=update))
+        return dataclasses.replace(setup, indenters=type(setup.indenters)([placed]))
+
+    def key(s):
+        return cache.mesh_key(region=region_inputs(s))
+
+    noisy = dataclasses.replace(setup.indenters[0], start_pose=setup.indenters[0].start_pose * (1 + 1e-15))
+    assert key(dataclasses.replace(setup, indenters=type(setup.indenters)([noisy]))) == key(setup)
+    assert key(with_indenter(color_rgb=(0.1, 0.2, 0.3), friction=0.9, texture="speckle")) == key(setup)
+    x, y = setup.indenters[0].config.start_xy_mm
+    assert key(with_indenter(start_xy_mm=(x + 0.5, y))) != key(setup)

@@ -125,14 +125,25 @@ def _press_sphere(settings: SolverSettings, depth: float = 0.3):
     return solver, solver.solve_frame([_lift(4.0 - depth)])
 
 
-def test_cg_linear_solver_matches_direct_and_falls_back_when_it_cannot_converge():
+def test_cg_linear_solver_matches_direct_and_falls_back_when_it_cannot_converge(monkeypatch):
     """The GPU path (Warp CG, here on the CPU) gives the direct solver's frame; a CG that cannot reach its
     tolerance (1 iteration allowed) hands that system to the direct solver instead of returning a bad step.
-    (The direct path takes the exact elastic Hessian where it is positive definite, CG the clamped one: the two
-    Newton paths differ, so friction's lag ends in a slightly different place; forces agree to 1e-6 of |F|.)"""
+    With every Newton system solved to CG's tight tolerance the frames agree to 1e-5 of |u| (the direct path
+    takes the exact elastic Hessian where it is positive definite, CG the clamped one: the Newton paths differ
+    a little). With inexact Newton (the default: loose CG
+    tolerances far from the solution) the path differs; the penalty contact on the faceted sphere then ends
+    in a neighbouring equilibrium (residual below 1e-6 N on both, energy within 1e-5 relative): displacements
+    within 2 % of |u| (2.5 um measured) and the normal force within 1e-4."""
+    from transtac_sim.physics import newton
+
     _, direct = _press_sphere(SolverSettings(linear_solver="direct", newton_tol_mm=1e-6))
-    cg, by_cg = _press_sphere(SolverSettings(linear_solver="cg", newton_tol_mm=1e-6))
+    _, inexact = _press_sphere(SolverSettings(linear_solver="cg", newton_tol_mm=1e-6))
     scale = np.abs(direct.displacement_mm).max()
+    np.testing.assert_allclose(inexact.displacement_mm, direct.displacement_mm, atol=2e-2 * scale)
+    np.testing.assert_allclose(inexact.forces_n[:, 2], direct.forces_n[:, 2], rtol=1e-4)
+    assert inexact.record.residual < 1e-6
+    monkeypatch.setattr(newton, "FORCING_MAX", 0.0)
+    cg, by_cg = _press_sphere(SolverSettings(linear_solver="cg", newton_tol_mm=1e-6))
     np.testing.assert_allclose(by_cg.displacement_mm, direct.displacement_mm, atol=1e-5 * scale)
     np.testing.assert_allclose(by_cg.forces_n, direct.forces_n, rtol=1e-5, atol=1e-6 * np.abs(direct.forces_n).max())
     assert cg._linear.cg_fallbacks == 0

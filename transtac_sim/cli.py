@@ -141,7 +141,8 @@ def generate(scene: Path = SceneArg,
              frames: int = typer.Option(None, min=1, help="frames per sequence (default: the whole trajectory)"),
              seed: int = typer.Option(None, min=0, help="replace the scene's seed"),
              sequences: int = typer.Option(None, min=1, help="replace the scene's sequence count"),
-             workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray CPUs)"),
+             workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray CPUs); on a "
+                                                         "one-GPU machine keep 1 (several share the GPU, slower)"),
              executor: str = typer.Option("local", help="local | ray"),
              address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)")) -> None:
     """Generate a labelled stereo dataset (DESIGN.md section 4); re-running resumes an interrupted run."""

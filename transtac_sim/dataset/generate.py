@@ -11,6 +11,7 @@ uninterrupted run, wall-clock fields aside.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -55,7 +56,9 @@ def _run_local(tasks: list[SequenceTask], workers: int) -> Iterator[list[dict]]:
         for t in tasks:
             yield _run_task(t)
         return
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    # spawned, not forked: a forked CUDA context is unusable. Several workers on one GPU each open a context there;
+    # on an H100 six were slower than one (BENCHMARKS.md generate_train_random_gpu_workers)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for fut in as_completed([pool.submit(_run_task, t) for t in tasks]):
             yield fut.result()
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 from transtac_sim.meshing import cache
 from transtac_sim.meshing.contact_region import contact_region
@@ -32,7 +34,7 @@ def mesh_gel(setup: SceneSetup, *, use_cache: bool = True) -> MeshedGel:
     size = setup.sensor.gel_size_mm
     cfg = setup.scene.mesh
     region = contact_region(setup)
-    key = cache.mesh_key(size_mm=list(size), region=list(region) if region else None,
+    key = cache.mesh_key(size_mm=list(size), region=region_inputs(setup) if region else None,
                          edge_mm=cfg.edge_mm, contact_edge_mm=cfg.contact_edge_mm)
     mesh = cache.load_cached(key) if use_cache else None
     hit = mesh is not None
@@ -43,3 +45,22 @@ def mesh_gel(setup: SceneSetup, *, use_cache: bool = True) -> MeshedGel:
     markers = embed_points(mesh.vertices_mm, mesh.tets, setup.sensor.markers_rest_gel_mm)
     quality = mesh_quality(mesh.vertices_mm, mesh.tets)
     return MeshedGel(mesh, markers, quality, region, key, hit, time.perf_counter() - t0)
+
+
+def region_inputs(setup: SceneSetup) -> dict:
+    """What decides the contact region, as configured: the refine margin and, per indenter, its mesh file's
+    bytes (or the loaded mesh's arrays) and its placement and trajectory values. The mesh cache key hashes
+    these instead of the region itself, whose last bits depend on the machine (the indenter's vertices are
+    posed by a BLAS matrix product, which rounds differently on another CPU), so that a cache made on one
+    machine is found on another. Appearance (colour, texture) and friction do not enter."""
+    placement = {"units", "anchor", "start_xy_mm", "start_gap_mm", "rotation_deg", "trajectory"}
+    out = []
+    for ind in setup.indenters:
+        source = Path(ind.mesh.source)
+        if source.is_file():
+            geometry = hashlib.sha256(source.read_bytes()).hexdigest()
+        else:
+            m = ind.mesh.mesh
+            geometry = hashlib.sha256(m.vertices.tobytes() + m.faces.tobytes()).hexdigest()
+        out.append({"geometry": geometry, **ind.config.model_dump(mode="json", include=placement)})
+    return {"refine_margin_mm": setup.scene.mesh.refine_margin_mm, "indenters": out}

@@ -7,9 +7,14 @@
   ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD finds the matrix is not
   positive definite (Newton then takes the clamped Hessian, see newton.py).
 - ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the
-  GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``. Where CG
+  GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``. Its relative
+  tolerance is Newton's forcing term (inexact Newton: loose far from the solution, tight near it). Where CG
   does not reach its tolerance in ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a
-  sharp tip), that system is solved by the direct path instead (``cg_fallbacks`` counts them).
+  sharp tip), that system is solved by the direct path instead (``cg_fallbacks`` counts them). The last
+  converged system's matrix and preconditioner are kept for ``solve_last``. Block-Jacobi because it is the
+  cheapest per solve here: Warp's FSAI halves CG's iterations but its set-up (60 ms to 4 s on a 10^5-dof
+  Newton system, H100) costs more than it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md
+  ``linear_solvers_gpu``).
 """
 
 from __future__ import annotations
@@ -129,14 +134,19 @@ class LinearSolver:
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
         self._static: tuple[int, sp.csr_matrix] | None = None
+        self._converged_iterations = 0  # CG iterations of the last converged device solve
+        self._last_cg: tuple | None = None  # the last converged device system's (matrix, preconditioner)
 
-    def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array, definite: bool = False) -> wp.array | None:
+    def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array, definite: bool = False,
+              rtol: float | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed. With
-        ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge)."""
+        ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
+        ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
+        the solution, newton.py); the direct path solves exactly either way."""
         parts = H if isinstance(H, (list, tuple)) else [H]
-        self._last_free = None
+        self.forget()
         if self.method == "cg":
-            x = self._solve_cg(parts, rhs)
+            x = self._solve_cg(parts, rhs, rtol or self.cg_tol)
             if x is not None:
                 return x
             if definite:
@@ -174,10 +184,15 @@ class LinearSolver:
         self.last_iterations = 1
         return self._lu.solve(b)
 
-    def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3) -> np.ndarray | None:
-        """The last direct system's matrix solved for another right-hand side ``rhs`` (nodes, 3), by CG
-        preconditioned with the kept factorisation (no assembly, no factorisation): (nodes, 3) with 0 on the
-        fixed components, or None (CG path, no system yet, or no convergence in ``reuse_max_iterations``)."""
+    def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:
+        """The last system's matrix solved for another right-hand side ``rhs`` (nodes, 3; 0 on the fixed
+        components), without assembly or factorisation: by CG preconditioned with the kept factorisation (direct
+        path: to ``rtol``, a few iterations) or with the kept block-Jacobi preconditioner on the device (CG path:
+        to ``rtol``, then on to ``cg_tol`` where the solution is below ``exact_below`` mm, because an early-stopped
+        CG solution is shorter than the exact one and the caller tests convergence on it). (nodes, 3) with 0 on
+        the fixed components, or None (no system yet, or no convergence within the iterations allowed)."""
+        if self.method == "cg":
+            return self._solve_last_cg(rhs, rtol, exact_below)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:
             return None
         x, _ = _pcg(self._last_free, rhs.reshape(-1)[self._free], self._lu.solve, rtol, self.reuse_max_iterations)
@@ -187,12 +202,29 @@ class LinearSolver:
         out[self._free] = x
         return out.reshape(-1, 3)
 
+    def _solve_last_cg(self, rhs: np.ndarray, rtol: float, exact_below: float) -> np.ndarray | None:
+        if self._last_cg is None:
+            return None
+        H, M = self._last_cg
+        b = wp.array(np.asarray(rhs).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        x = wp.zeros_like(b)
+        iters, err, atol = cg(H, b, x, tol=rtol, maxiter=max(50, self._converged_iterations), M=M, check_every=25)
+        if not float(err) <= float(atol):
+            return None
+        if rtol > self.cg_tol and float(np.max(np.abs(x.numpy()))) < exact_below:  # refine, from x
+            iters, err, atol = cg(H, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
+            if not float(err) <= float(atol):
+                return None
+        return x.numpy()
+
     def forget(self) -> None:
         """The next ``solve_last`` returns None until a new system is solved (e.g. the energy has changed)."""
         self._last_free = None
+        self._last_cg = None
 
-    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array) -> wp.array | None:
-        """CG on the device; None if it did not converge (rhs is left as it was)."""
+    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array, rtol: float) -> wp.array | None:
+        """CG on the device to ``rtol`` in at most ``cg_maxiter`` iterations; None if it did not converge (rhs
+        is left as it was)."""
         H = wp.sparse.bsr_copy(parts[0])  # parts[0] is reused by the caller: project a copy
         for P in parts[1:]:
             wp.sparse.bsr_axpy(P, H)
@@ -200,6 +232,10 @@ class LinearSolver:
         fem.project_linear_system(H, b, self._projector, normalize_projector=False)
         x = wp.zeros_like(b)
         M = preconditioner(H, ptype="block_jacobi_direct")
-        iters, err, atol = cg(H, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
+        iters, err, atol = cg(H, b, x, tol=rtol, maxiter=self.cg_maxiter, M=M, check_every=25)
         self.last_iterations = int(iters)
-        return x if float(err) <= float(atol) else None  # a NaN in x makes err NaN: also None
+        if not float(err) <= float(atol):  # a NaN in x makes err NaN: also None
+            return None
+        self._converged_iterations = self.last_iterations
+        self._last_cg = (H, M)
+        return x

@@ -1,0 +1,143 @@
+"""Where a FEM frame's time goes: seconds per solver phase (exclusive, device synchronised), calls, and the
+linear solver's iterations per solve, for the frames of a scene as ``generate`` solves them.
+
+    .venv/bin/python scripts/fem_phase_profile.py tests/fixtures/tiny_press.toml [--device cpu|cuda]
+        [--linear-solver auto|direct|cg] [--frames N] [--skip-first]
+
+Phases are the methods of ``QuasiStaticSolver`` (solver.py, newton.py) and of its ``LinearSolver``
+(linear.py); each is timed with ``wp.synchronize_device`` on entry and exit, so a kernel launched in one
+phase is charged to it and not to the next host read. Time outside every listed phase is ``other`` (the
+Newton loop's own host work: numpy on the gradient, step norms, copies). ``--skip-first`` leaves the first
+frame out of the totals (kernel compilation on a fresh machine).
+
+To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 0: every CG solve to its
+tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
+last system: the CG path before issue 12's third pass).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import statistics
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import typer
+import warp as wp
+
+from transtac_sim.dataset.sequence import StageClock
+from transtac_sim.physics import QuasiStaticSolver, newton
+from transtac_sim.physics.linear import LinearSolver
+from transtac_sim.scene_setup import load_setup
+from transtac_sim.simulation import simulate_frames
+
+PHASES = {
+    QuasiStaticSolver: ("_gradient", "_energy", "_hessian", "_min_det", "_max_penetration", "_update_lag",
+                        "_move_lag", "_warm_start", "_carried", "_indenter_struct"),
+    LinearSolver: ("solve", "solve_last"),
+}
+
+
+class PhaseClock:
+    """Exclusive seconds and calls per phase; nested phases are charged to the innermost one."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = defaultdict(float)
+        self.calls: dict[str, int] = defaultdict(int)
+        self.linear_iterations: list[int] = []
+        self._stack: list[list] = []  # [name, start, child seconds]
+
+    def wrap(self, cls, name: str):
+        original = getattr(cls, name)
+        clock = self
+
+        @functools.wraps(original)
+        def timed(obj, *args, **kwargs):
+            wp.synchronize_device()
+            clock._stack.append([name, time.perf_counter(), 0.0])
+            try:
+                return original(obj, *args, **kwargs)
+            finally:
+                wp.synchronize_device()
+                label, start, children = clock._stack.pop()
+                spent = time.perf_counter() - start
+                clock.seconds[label] += spent - children
+                clock.calls[label] += 1
+                if clock._stack:
+                    clock._stack[-1][2] += spent
+                if isinstance(obj, LinearSolver) and name == "solve":
+                    clock.linear_iterations.append(int(obj.last_iterations))
+
+        setattr(cls, name, timed)
+        return original
+
+    def reset(self) -> None:
+        self.seconds.clear()
+        self.calls.clear()
+        self.linear_iterations.clear()
+
+
+def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
+         linear_solver: str = typer.Option("auto", help="auto, direct or cg"),
+         frames: int = typer.Option(2, min=1), skip_first: bool = typer.Option(False),
+         forcing_max: float = typer.Option(newton.FORCING_MAX, min=0.0, max=1.0),
+         clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False)) -> None:
+    newton.FORCING_MAX = forcing_max
+    if clamped_only:
+        QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, True), (0.0, True))
+    if no_estimate:
+        LinearSolver.solve_last = lambda self, rhs, rtol=1e-3: None
+    setup = load_setup(scene)
+    physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": linear_solver})
+    setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
+    clock = PhaseClock()
+    originals = [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items() for name in names]
+    failures = []
+    solve_step = QuasiStaticSolver._solve_step
+
+    def noting_failures(self, poses, prev_poses):  # a failed (sub)step makes the frame sub-step: say why
+        result = solve_step(self, poses, prev_poses)
+        if not result[0]:
+            failures.append(f"frame {self.frame_index}: {result[2]} after {result[1]} Newton iterations")
+        return result
+
+    QuasiStaticSolver._solve_step = noting_failures
+    frame_seconds, frame_iterations = [], []
+    try:
+        for f in simulate_frames(setup, frames, StageClock()):
+            frame_seconds.append(f.solver["seconds"])
+            frame_iterations.append(f.solver["iterations"])
+            print(f"frame {f.frame}: {f.solver['seconds']:.2f} s, {f.solver['iterations']} Newton iterations, "
+                  f"{f.solver['substeps']} sub-step(s)", flush=True)
+            if skip_first and f.frame == 0:
+                clock.reset()
+    finally:
+        for cls, name, original in originals:
+            setattr(cls, name, original)
+        QuasiStaticSolver._solve_step = solve_step
+    counted = frame_seconds[1:] if skip_first and len(frame_seconds) > 1 else frame_seconds
+    iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
+    total = sum(counted)
+    print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
+          f"forcing max {forcing_max:g}{', clamped Hessian only' if clamped_only else ''}"
+          f"{', no step estimate' if no_estimate else ''}: "
+          f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
+          f"({1000 * total / max(iterations, 1):.1f} ms per iteration)")
+    print("| phase | calls | s | ms per call | share |")
+    print("|---|---|---|---|---|")
+    for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):
+        print(f"| {name} | {clock.calls[name]} | {s:.3f} | {1000 * s / clock.calls[name]:.2f} | {s / total:.1%} |")
+    print(f"| other | | {total - sum(clock.seconds.values()):.3f} | | "
+          f"{(total - sum(clock.seconds.values())) / total:.1%} |")
+    for why in failures:
+        print(f"failed (sub)step, {why}")
+    if clock.linear_iterations:
+        li = clock.linear_iterations
+        print(f"linear solver iterations per solve: median {statistics.median(li):g}, max {max(li)}, "
+              f"total {sum(li)} over {len(li)} solves")
+
+
+if __name__ == "__main__":
+    typer.run(main)
