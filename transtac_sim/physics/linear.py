@@ -138,15 +138,17 @@ class LinearSolver:
         self._last_cg: tuple | None = None  # the last converged device system's (matrix, preconditioner)
 
     def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array, definite: bool = False,
-              rtol: float | None = None) -> wp.array | None:
+              rtol: float | None = None, exact_below: float = 0.0) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed. With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
-        the solution, newton.py); the direct path solves exactly either way."""
+        the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
+        early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
+        the direct path solves exactly either way."""
         parts = H if isinstance(H, (list, tuple)) else [H]
         self.forget()
         if self.method == "cg":
-            x = self._solve_cg(parts, rhs, rtol or self.cg_tol)
+            x = self._solve_cg(parts, rhs, rtol or self.cg_tol, exact_below)
             if x is not None:
                 return x
             if definite:
@@ -208,23 +210,29 @@ class LinearSolver:
         H, M = self._last_cg
         b = wp.array(np.asarray(rhs).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
         x = wp.zeros_like(b)
-        iters, err, atol = cg(H, b, x, tol=rtol, maxiter=max(50, self._converged_iterations), M=M, check_every=25)
-        if not float(err) <= float(atol):
-            return None
-        if rtol > self.cg_tol and float(np.max(np.abs(x.numpy()))) < exact_below:  # refine, from x
+        converged, _ = self._cg(H, M, b, x, rtol, max(50, self._converged_iterations), exact_below)
+        return x.numpy() if converged else None
+
+    def _cg(self, H, M, b: wp.array, x: wp.array, rtol: float, maxiter: int,
+            exact_below: float) -> tuple[bool, int]:
+        """CG on H x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
+        (converged, iterations); a NaN in x makes the residual NaN: not converged."""
+        iters, err, atol = cg(H, b, x, tol=rtol, maxiter=maxiter, M=M, check_every=25)
+        total = int(iters)
+        if float(err) <= float(atol) and rtol > self.cg_tol and exact_below > 0.0 \
+                and float(np.max(np.abs(x.numpy()))) < exact_below:
             iters, err, atol = cg(H, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
-            if not float(err) <= float(atol):
-                return None
-        return x.numpy()
+            total += int(iters)
+        return float(err) <= float(atol), total
 
     def forget(self) -> None:
         """The next ``solve_last`` returns None until a new system is solved (e.g. the energy has changed)."""
         self._last_free = None
         self._last_cg = None
 
-    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array, rtol: float) -> wp.array | None:
-        """CG on the device to ``rtol`` in at most ``cg_maxiter`` iterations; None if it did not converge (rhs
-        is left as it was)."""
+    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array, rtol: float, exact_below: float) -> wp.array | None:
+        """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
+        left as it was)."""
         H = wp.sparse.bsr_copy(parts[0])  # parts[0] is reused by the caller: project a copy
         for P in parts[1:]:
             wp.sparse.bsr_axpy(P, H)
@@ -232,9 +240,8 @@ class LinearSolver:
         fem.project_linear_system(H, b, self._projector, normalize_projector=False)
         x = wp.zeros_like(b)
         M = preconditioner(H, ptype="block_jacobi_direct")
-        iters, err, atol = cg(H, b, x, tol=rtol, maxiter=self.cg_maxiter, M=M, check_every=25)
-        self.last_iterations = int(iters)
-        if not float(err) <= float(atol):  # a NaN in x makes err NaN: also None
+        converged, self.last_iterations = self._cg(H, M, b, x, rtol, self.cg_maxiter, exact_below)
+        if not converged:
             return None
         self._converged_iterations = self.last_iterations
         self._last_cg = (H, M)

@@ -69,9 +69,10 @@ class NewtonSteps:
         otherwise it is the full Newton step itself. The device CG solves each system to the forcing
         tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
         convergence a penetration above ``penetration_tol_mm`` raises the contact stiffness
-        (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E (quadratic interpolation) never accepts a step that
-        makes any det F <= 0. Iterations count Newton steps (each assembles the exact Hessian and, where that is
-        not positive definite, the clamped or Gauss-Newton one)."""
+        (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E
+        (quadratic interpolation) never accepts a step that makes any det F <= 0. Iterations count Newton steps
+        (each assembles the exact Hessian and, where that is not positive definite, the clamped or Gauss-Newton
+        one)."""
         s = self.settings
         tol = s.newton_tol_mm
         friction = any(i.friction > 0 for i in self.indenters)
@@ -108,12 +109,8 @@ class NewtonSteps:
             rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
             rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)  # CG only: the direct path is exact
             for geometric, clamp in self._hessian_ladder():
-                H = self._hessian(ind, geometric, clamp)
-                du = self._linear.solve(H, rhs, definite=not clamp, rtol=rtol)
-                if du is not None and rtol > self._linear.cg_tol and float(np.max(np.abs(du.numpy()))) < 100 * tol:
-                    # near convergence the step decides the convergence test: solve it exactly (an early-stopped CG
-                    # step is shorter than the Newton step and could pass the test too soon)
-                    du = self._linear.solve(H, rhs, definite=not clamp)
+                du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=not clamp, rtol=rtol,
+                                        exact_below=100.0 * tol)  # near convergence the step decides the test
                 if du is None:  # the exact Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
