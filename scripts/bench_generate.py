@@ -5,6 +5,9 @@
 
 On a one-GPU machine ``--workers K`` runs K sequences at once on the GPU (local processes). After each
 sequence it prints the frames processed so far and their rate, so that a run cut short still says something.
+``--out DIR`` generates into DIR instead of a temporary folder: a run cut short (e.g. by a time limit) is
+resumed by the same command, and the rate then counts only the frames computed in this run (the failure count
+covers them all; the per-sequence progress lines count the frames found on disk too).
 
 Runs the generator into a temporary folder, reads the per-stage seconds from its manifest, and writes a
 table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
@@ -40,7 +43,8 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          md_out: Path | None = typer.Option(None, help="also write the section's markdown to this file"),
          write: bool = typer.Option(True, help="update BENCHMARKS.md"),
          section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),
-         mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes")) -> None:
+         mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes"),
+         out: Path | None = typer.Option(None, help="dataset folder, kept (resumable); default: a temporary one")) -> None:
     if mesh_only:
         _mesh_sequences(scene, sequences)
         return
@@ -48,19 +52,21 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
 
     cached_before = set(cache_dir().glob("*.npz"))
     with tempfile.TemporaryDirectory() as tmp:
+        root = out or Path(tmp) / "ds"
         t0 = time.perf_counter()
         def progress(done: int, total: int) -> None:  # after each sequence: a run cut short still tells its rate
             t = time.perf_counter() - t0
             print(f"[{t:.0f} s] {done}/{total} frames, {3600 * done / t:.0f} frames per hour so far", flush=True)
 
-        report = generate(scene, Path(tmp) / "ds", frames=frames, sequences=sequences, workers=workers,
+        report = generate(scene, root, frames=frames, sequences=sequences, workers=workers,
                           executor=executor, on_frames=progress)
         wall = time.perf_counter() - t0
-        manifest = json.loads((Path(tmp) / "ds" / "manifest.json").read_text())
+        manifest = json.loads((root / "manifest.json").read_text())
     from transtac_sim.rendering.mitsuba_env import select_variant
 
     variant = select_variant().variant()  # the workers' automatic choice (the main process renders nothing)
-    n = report.frames_done
+    n = report.frames_done - report.frames_skipped  # computed in this run
+    resumed = f" ({report.frames_skipped} more were already in {out}: resumed)" if report.frames_skipped else ""
     stage_total = sum(report.timings.values())
     rows = [f"| {k} | {v:.2f} | {v / max(n, 1):.3f} | {100 * v / stage_total:.0f} % |" for k, v in
             sorted(report.timings.items(), key=lambda kv: -kv[1])]
@@ -69,8 +75,9 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         f"(Python {platform.python_version()}, Mitsuba variant {variant}), {time.strftime('%Y-%m-%d')}:",
         "",
         f"{n} labelled stereo frames ({len(manifest['scene']['outputs']['cameras'])} cameras x "
-        f"{', '.join(manifest['scene']['outputs']['illuminations'])}) in {wall:.1f} s wall: "
-        f"**{3600 * n / wall:.0f} frames per hour** ({len(report.frames_failed)} failed).",
+        f"{', '.join(manifest['scene']['outputs']['illuminations'])}) in {wall:.1f} s wall{resumed}: "
+        f"**{3600 * n / wall:.0f} frames per hour**; {len(report.frames_failed)} of "
+        f"{len(manifest['samples'])} frames of {sequences} sequences failed.",
         "",
         "| stage | seconds | seconds per frame | share |",
         "| --- | --- | --- | --- |",

@@ -9,6 +9,9 @@
 Newton iterations (Hessian assemblies), line-search halvings, contact stiffness raises, warm starts,
 sub-steps, seconds.
 
+``--sequence I`` solves sequence I of a randomised scene (its drawn indenter, depth, slide, friction and
+layout, as ``generate`` would): e.g. to see why a frame of ``scenes/train_random.toml`` failed.
+
 ``--label NAME --benchmarks`` stores the run under NAME in BENCHMARKS.md's ``fem_newton_iterations_cpu``
 section (the runs are kept in the section itself, so that "before" and "after" runs of different code
 versions sit in one table) and rewrites its table: median and per-frame iterations and seconds.
@@ -46,9 +49,20 @@ def _with_trajectories(setup, source: Path):
     return dataclasses.replace(setup, indenters=type(setup.indenters)(placed))
 
 
-def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None) -> dict:
+def _sequence_setup(scene: Path, index: int):
+    from transtac_sim.dataset.sequence import sequence_setup
+
+    setup, variant = sequence_setup(load_scene(scene), scene.resolve(), index)
+    for ind in variant.scene.indenters:
+        print(f"sequence {index}: indenter {ind.mesh}, friction {ind.friction}, gel E "
+              f"{setup.sensor.gel.youngs_modulus_mpa} MPa, trajectory "
+              f"{[t.model_dump(exclude_defaults=True) for t in ind.trajectory]}")
+    return setup
+
+
+def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, sequence: int | None = None) -> dict:
     """Solves the frames; returns the run's description and per-frame solver records."""
-    setup = load_setup(scene)
+    setup = load_setup(scene) if sequence is None else _sequence_setup(scene, sequence)
     physics = setup.scene.physics.model_copy(update={"degree": degree})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     if trajectory_from is not None:
@@ -62,7 +76,8 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None) -> 
         return result
 
     QuasiStaticSolver.solve_frame = recording
-    what = f"{scene}" + (f" with the trajectories of {trajectory_from}" if trajectory_from else "")
+    what = f"{scene}" + (f" with the trajectories of {trajectory_from}" if trajectory_from else "") + (
+        f" sequence {sequence}" if sequence is not None else "")
     print(f"{what} on a {os.cpu_count()}-core CPU, P{degree}, {frames} frame(s)")
     clock, t0, load0 = StageClock(), time.perf_counter(), os.getloadavg()[0]
     try:
@@ -123,8 +138,17 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          trajectory_from: Path | None = typer.Option(None, help="take the indenters' trajectories and friction "
                                                                   "from this scene"),
          label: str = typer.Option("", help="name of this run in the BENCHMARKS.md table"),
-         benchmarks: bool = typer.Option(False, help=f"store the run in BENCHMARKS.md's {SECTION} section")) -> None:
-    result = run(scene, degree, frames, trajectory_from)
+         benchmarks: bool = typer.Option(False, help=f"store the run in BENCHMARKS.md's {SECTION} section"),
+         sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
+         max_newton_iterations: int | None = typer.Option(None, min=1, help="replace SolverSettings' "
+                                                          "max_newton_iterations (per sub-step)")) -> None:
+    if max_newton_iterations is not None:
+        import functools
+
+        from transtac_sim import physics  # simulation.py imports SolverSettings from here when it solves
+
+        physics.SolverSettings = functools.partial(physics.SolverSettings, max_newton_iterations=max_newton_iterations)
+    result = run(scene, degree, frames, trajectory_from, sequence)
     if benchmarks:
         from benchmarks_md import update_section
 

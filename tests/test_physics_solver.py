@@ -151,6 +151,15 @@ def test_cg_linear_solver_matches_direct_and_falls_back_when_it_cannot_converge(
     P = _lift(4.0 - 0.35)
     stalled = cg.solve_frame([P])
     assert cg._linear.cg_fallbacks > 0 and stalled.record.converged
+    # the Newton iteration cap per sub-step: 40 with the direct solver, 120 with CG unless set (settings.py)
+    V, T = box_tet_mesh(np.linspace(0, 1, 2), np.linspace(0, 1, 2), np.linspace(0, 1, 2))
+
+    def cap(**settings):
+        return QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()], SolverSettings(**settings)) \
+            ._newton_iteration_cap()
+
+    assert (cg._newton_iteration_cap(), cap(linear_solver="direct"), cap(linear_solver="cg", max_newton_iterations=7)) \
+        == (120, 40, 7)
 
 
 def test_contact_stiffness_is_raised_until_the_penetration_is_within_tolerance():

@@ -14,7 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import fem_stability as fs  # noqa: E402
 
-from transtac_sim.physics import IndenterStartsInsideGel, SolverDidNotConverge  # noqa: E402
+from transtac_sim.physics import IndenterStartsInsideGel  # noqa: E402
 
 BLOCK = fs.Block(width=6.0, thickness=3.0, h_fine=1.0, fine_half_width=2.0)
 
@@ -43,18 +43,6 @@ def _run_ok(case: fs.Case) -> fs.CaseResult:
     return r
 
 
-def _run_clear_failure(case: fs.Case, frame: int, why: str) -> fs.CaseResult:
-    """The honest outcome on this coarse block: SolverDidNotConverge at ``frame``, naming it, the indenter,
-    what was tried and the reason; the frames before it are fine. (If this starts converging: update.)"""
-    r = fs.run_case(case, BLOCK)
-    assert isinstance(r.error, SolverDidNotConverge), f"{case.name}: expected a clear failure, got {r.error!r}"
-    msg = str(r.error)
-    assert f"frame {frame} " in msg and f"'{case.shape}'" in msg and "32 sub-step(s)" in msg and why in msg, msg
-    assert len(r.frames) == frame
-    _check_frames(r)
-    return r
-
-
 def _press_force_increases(r: fs.CaseResult) -> None:
     fz = np.array([f["fz"] for f in r.frames])
     assert np.all(fz < 0.0) and np.all(np.diff(-fz) > 0.0), fz  # pressing harder, pushing the gel down
@@ -72,14 +60,6 @@ def test_stiff_backing_barely_moves():
     _press_force_increases(r)
     last = r.frames[-1]
     assert last["max_u_backing_mm"] < 1e-2 * last["max_u_mm"], last
-
-
-def test_press_to_half_the_thickness_in_five_frames():
-    """On this coarse block (h = t/3) an element under the sphere's rim inverts at 40 %: det F < 0 at the
-    equilibrium itself, with 32 sub-steps as with one, so smaller increments do not help."""
-    case = _case("depth 50 % of thickness")
-    assert len(fs.trajectory(case, fs.make_indenter("sphere", BLOCK.thickness, 0.0), BLOCK.thickness)[1]) == 5
-    _press_force_increases(_run_clear_failure(case, frame=3, why="inverted element"))
 
 
 def test_cube_edge():

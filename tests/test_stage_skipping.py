@@ -63,6 +63,21 @@ def test_failed_frame_is_recorded_with_its_reason_and_not_written(tmp_path, monk
     assert report.frames_done == 1 and len(report.frames_failed) == 2
     assert not (tmp_path / "ds" / "sequences" / "seq_00000" / "000001").exists()
 
+    # resumed: the recorded failure is kept and the sequence is not solved again, unless asked to retry
+    calls = []
+
+    def counting(setup, frames, clock):
+        calls.append(frames)
+        yield from real(setup, frames, clock)
+
+    monkeypatch.setattr(simulation, "simulate_frames", counting)
+    again = generate(REPO / "tests" / "fixtures" / "tiny_rest.toml", tmp_path / "ds", frames=3, sequences=1)
+    assert not calls and again.frames_done == 1 and again.frames_failed == report.frames_failed
+    retried = generate(REPO / "tests" / "fixtures" / "tiny_rest.toml", tmp_path / "ds", frames=3, sequences=1,
+                       retry_failed=True)
+    assert calls == [3] and retried.frames_done == 3 and not retried.frames_failed
+    assert not (tmp_path / "ds" / ".resume" / "seq_00000.json").exists()
+
 
 def test_render_command_writes_images_labels_and_contact_sheet(tmp_path):
     from typer.testing import CliRunner

@@ -144,7 +144,9 @@ def generate(scene: Path = SceneArg,
              workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray CPUs); on a "
                                                          "one-GPU machine keep 1 (several share the GPU, slower)"),
              executor: str = typer.Option("local", help="local | ray"),
-             address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)")) -> None:
+             address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)"),
+             retry_failed: bool = typer.Option(False, help="on resume, solve again the sequences whose frame failed "
+                                                           "in an earlier run (default: keep those failures)")) -> None:
     """Generate a labelled stereo dataset (DESIGN.md section 4); re-running resumes an interrupted run."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
@@ -164,7 +166,7 @@ def generate(scene: Path = SceneArg,
 
         try:
             report = run(scene, out, frames=frames, seed=seed, sequences=sequences, workers=workers,
-                         executor=executor, address=address, on_frames=on_frames)
+                         executor=executor, address=address, on_frames=on_frames, retry_failed=retry_failed)
         except ConfigError as e:
             console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
             raise typer.Exit(2) from None

@@ -30,6 +30,7 @@ class SequenceTask:
     scene_json: str  # the resolved scene (seed and frame limit applied)
     index: int
     root: str
+    retry_failed: bool = False  # solve a sequence again even where an earlier run recorded its failure
 
 
 @dataclass
@@ -81,9 +82,10 @@ def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int) -> It
 
 def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = None, seed: int | None = None,
              sequences: int | None = None, workers: int = 1, executor: str = "local", address: str | None = None,
-             on_frames: Callable[[int, int], None] | None = None) -> GenerateReport:
+             on_frames: Callable[[int, int], None] | None = None, retry_failed: bool = False) -> GenerateReport:
     """Generate (or resume) the dataset of ``scene_path`` in ``out``; ``on_frames(done, total)`` reports
-    progress after each sequence."""
+    progress after each sequence. A resumed run keeps the failures an earlier run recorded (their sequences are
+    not solved again) unless ``retry_failed``."""
     t0 = time.perf_counter()
     scene_path = Path(scene_path).resolve()
     scene = load_scene(scene_path)
@@ -103,7 +105,8 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
 
     base = build_setup(scene, scene_path)
     write_json(root / "calibration.json", base.sensor.calibration_json())
-    tasks = [SequenceTask(str(scene_path), json.dumps(resolved), i, str(root)) for i in range(scene.sequences)]
+    tasks = [SequenceTask(str(scene_path), json.dumps(resolved), i, str(root), retry_failed)
+             for i in range(scene.sequences)]
     results: list[dict] = []
     total = len(tasks) * limit
     runs = _run_ray(tasks, address, workers) if executor == "ray" else _run_local(tasks, workers)

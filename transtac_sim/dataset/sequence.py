@@ -2,6 +2,11 @@
 render, camera model, labels, write. Runs in a worker process or a Ray task; returns one status record
 per frame with its per-stage seconds.
 
+A frame whose physics fails stops its sequence; the failure is kept in ``<dataset>/.resume/<sequence>.json``
+(resume state, not part of the dataset contract), so that a resumed run does not solve the same sequence up
+to the same failure again (minutes for a sharp slide that exhausts the sub-stepping); ``retry_failed`` (the
+CLI's ``--retry-failed``, e.g. after a solver change) solves it again.
+
 Stages run only when an output needs them: no FEM for a contact-free scene (the gel stays at rest), no
 render without illuminations or AOVs, no labels when ``outputs.labels`` is false.
 """
@@ -20,6 +25,7 @@ from transtac_sim.config.scene import Scene
 from transtac_sim.dataset import contract
 from transtac_sim.dataset.frame_writer import FrameOutput, is_complete, write_frame
 from transtac_sim.dataset.randomize import sequence_variant
+from transtac_sim.writer.atomic import write_json
 
 
 class StageClock:
@@ -39,7 +45,6 @@ class StageClock:
 
 def run_sequence(task) -> list[dict]:
     from transtac_sim import simulation
-    from transtac_sim.scene_setup import build_setup
 
     resolved = json.loads(task.scene_json)
     limit = resolved.pop("frames_per_sequence")
@@ -49,13 +54,15 @@ def run_sequence(task) -> list[dict]:
     todo = [f for f in range(limit) if not is_complete(root, seq, f)]
     if not todo:
         return [{"sequence": seq, "frame": f, "status": "done", "skipped": True} for f in range(limit)]
+    failure = failure_record(root, seq)
+    if failure.is_file() and not task.retry_failed:
+        known = json.loads(failure.read_text())
+        if known["frames"] == limit and todo == list(range(known["frame"], limit)):
+            return [{"sequence": seq, "frame": f, "status": "done", "skipped": True} for f in range(known["frame"])] \
+                + known["records"]
     clock = StageClock()
-    variant = sequence_variant(scene, task.index)
     with clock("setup"):
-        setup = build_setup(variant.scene, Path(task.scene_path), marker_seed=variant.marker_seed)
-        if variant.youngs_modulus_mpa is not None:
-            gel = setup.sensor.gel.model_copy(update={"youngs_modulus_mpa": variant.youngs_modulus_mpa})
-            setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, gel=gel))
+        setup, variant = sequence_setup(scene, Path(task.scene_path), task.index)
     out = scene.outputs
     renderer = None
     records: list[dict] = []
@@ -80,13 +87,35 @@ def run_sequence(task) -> list[dict]:
             records.append({"sequence": seq, "frame": f, "status": "done"})
     except simulation.SimulationFailed as e:
         done = {r["frame"] for r in records}
-        records += [{"sequence": seq, "frame": f, "status": "failed", "reason": str(e) if f == e.frame else
-                     f"not simulated: frame {e.frame} of this sequence failed"} for f in range(limit) if f not in done]
+        failed = [{"sequence": seq, "frame": f, "status": "failed", "reason": str(e) if f == e.frame else
+                   f"not simulated: frame {e.frame} of this sequence failed"} for f in range(limit) if f not in done]
+        write_json(failure, {"frames": limit, "frame": e.frame, "records": failed})
+        records += failed
+    else:
+        failure.unlink(missing_ok=True)
     stages |= set(clock.seconds)
     if records:
         records[0]["timings"] = clock.seconds
         records[0]["stages"] = sorted(stages)
     return records
+
+
+def sequence_setup(scene: Scene, scene_path: Path, index: int):
+    """(setup, variant) of sequence ``index`` of ``scene``: its randomised indenters, trajectory, friction, layout
+    and gel stiffness, as ``generate`` solves and renders it."""
+    from transtac_sim.scene_setup import build_setup
+
+    variant = sequence_variant(scene, index)
+    setup = build_setup(variant.scene, scene_path, marker_seed=variant.marker_seed)
+    if variant.youngs_modulus_mpa is not None:
+        gel = setup.sensor.gel.model_copy(update={"youngs_modulus_mpa": variant.youngs_modulus_mpa})
+        setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, gel=gel))
+    return setup, variant
+
+
+def failure_record(root: Path, sequence: str) -> Path:
+    """Where a sequence's failed frame is kept for resuming (see the module docstring)."""
+    return Path(root) / ".resume" / f"{sequence}.json"
 
 
 def frame_seed(scene_seed: int, sequence: int, frame: int) -> int:

@@ -18,6 +18,19 @@ either ``s`` itself (the exact Hessian) or, with ``clamp``, ``s`` clamped to [-m
 Hessian non-negative (Smith et al. 2018, Sec. 4) but makes it inexact where it acts, which turns Newton's
 quadratic convergence linear. The Newton loop (newton.py) takes the exact Hessian where it is positive
 definite, else the clamped one, and ``geometric = 0`` (the Gauss-Newton Hessian) as the last fall-back.
+
+Inversion barrier (IPC-style, Li et al. 2020, on det F instead of a distance). The volumetric term holds J at
+one point per tet only; under a sharp tip the discrete minimum of E_el itself can fold a P2 element at its
+corners (det F < 0 at some of the 4 check points of order 2, where the line search tests inversion), and
+then no load step, however small, converges. Added to E_el at the same 4 points:
+
+    E_b(u) = sum_tets int kappa b(J) dV,   b(J) = -(J - J_hat)^2 ln(J / J_hat)  for 0 < J < J_hat,  0 above,
+    kappa = barrier_stiffness * mu (MPa), b -> +inf as J -> 0,
+
+C2 at J_hat, so it changes nothing where every J >= J_hat (the usual case) and makes an inverted element
+unreachable from an uninverted state. Gradient kappa b'(J) cof(F) : grad v; Hessian
+kappa [b''(J) (cof F : grad du)(cof F : grad v) + geometric b'(J) dcof(F)[grad du] : grad v], with b'' >= 0;
+the clamped Hessian clamps kappa b'(J) to [-mu/sigma_max, mu/sigma_max] as it does the volumetric pressure.
 """
 
 from __future__ import annotations
@@ -144,3 +157,61 @@ def volumetric_hessian_form(
 @fem.integrand
 def det_form(s: fem.Sample, u: fem.Field):
     return wp.determinant(deformation_gradient(fem.grad(u, s)))
+
+
+@wp.func
+def det_barrier(J: wp.float64, j_hat: wp.float64):
+    """(b, b', b'') of the inversion barrier b(J) = -(J - j_hat)^2 ln(J / j_hat) (0 for J >= j_hat)."""
+    if J >= j_hat:
+        return wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
+    d = J - j_hat
+    ln = wp.log(J / j_hat)
+    return wp.vec3d(-d * d * ln, -(_f(2.0) * d * ln + d * d / J), -(_f(2.0) * ln + _f(4.0) * d / J - d * d / (J * J)))
+
+
+@fem.integrand
+def barrier_energy_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d), stiffness: wp.float64,
+                        j_hat: wp.float64):
+    J = wp.determinant(deformation_gradient(fem.grad(u, s)))
+    return stiffness * params[s.element_index][0] * det_barrier(J, j_hat)[0]
+
+
+@fem.integrand
+def barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp.array(dtype=wp.vec2d),
+                          stiffness: wp.float64, j_hat: wp.float64):
+    F = deformation_gradient(fem.grad(u, s))
+    db = det_barrier(wp.determinant(F), j_hat)[1]
+    return stiffness * params[s.element_index][0] * db * wp.ddot(cofactor(F), fem.grad(v, s))
+
+
+@fem.integrand
+def barrier_state_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d), stiffness: wp.float64,
+                       j_hat: wp.float64, geometric: wp.float64, clamp: int, F_qp: wp.array(dtype=wp.mat33d),
+                       b_qp: wp.array(dtype=wp.vec2d)):
+    """Stores F and kappa (geometric b', b'') at each check point for ``barrier_hessian_form``; with ``clamp``
+    kappa b' is clamped like the volumetric pressure (see ``volumetric_state_form``)."""
+    F = deformation_gradient(fem.grad(u, s))
+    b = det_barrier(wp.determinant(F), j_hat)
+    mu = params[s.element_index][0]
+    kappa = stiffness * mu
+    p = kappa * b[1]
+    if clamp != 0:
+        U = wp.mat33d()
+        sig = wp.vec3d()
+        V = wp.mat33d()
+        wp.svd3(F, U, sig, V)
+        bound = mu / wp.max(wp.max(wp.abs(sig[0]), wp.abs(sig[1])), wp.max(wp.abs(sig[2]), _f(1.0e-6)))
+        p = wp.clamp(p, -bound, bound)
+    F_qp[s.qp_index] = F
+    b_qp[s.qp_index] = wp.vec2d(geometric * p, kappa * b[2])
+
+
+@fem.integrand
+def barrier_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, F_qp: wp.array(dtype=wp.mat33d),
+                         b_qp: wp.array(dtype=wp.vec2d)):
+    F = F_qp[s.qp_index]
+    b = b_qp[s.qp_index]
+    cof = cofactor(F)
+    gdu = fem.grad(du, s)
+    gv = fem.grad(v, s)
+    return b[1] * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + b[0] * wp.ddot(cofactor_delta(F, gdu), gv)

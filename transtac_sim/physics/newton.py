@@ -101,7 +101,7 @@ class NewtonSteps:
                     return True, iterations, "", pen
                 raises, full_step = raises + 1, False
                 continue
-            if iterations == s.max_newton_iterations:
+            if iterations == self._newton_iteration_cap():
                 why = " (line-search steps cut short by inverted elements, det F <= 0)" if inverted else ""
                 return False, iterations, "Newton iteration limit reached" + why, 0.0
             iterations += 1
@@ -155,6 +155,11 @@ class NewtonSteps:
                 continue
             wp.copy(self.u.dof_values, self._u_try.dof_values)
             full_step = alpha == 1.0
+
+    def _newton_iteration_cap(self) -> int:
+        """``max_newton_iterations``, or its default for the linear solver in use (settings.py)."""
+        cap = self.settings.max_newton_iterations
+        return cap if cap is not None else (40 if self._linear.method == "direct" else 120)
 
     def _hessian_ladder(self) -> tuple[tuple[float, bool], ...]:
         """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one (host solver only:

@@ -102,6 +102,9 @@ class QuasiStaticSolver(NewtonSteps):
             n_vol = self._q_vol.total_point_count()
             self._F_qp = wp.empty(n_vol, dtype=wp.mat33d)
             self._p_qp = wp.empty(n_vol, dtype=wp.float64)
+            n_det = self._q_det.total_point_count()
+            self._F_det = wp.empty(n_det, dtype=wp.mat33d)
+            self._b_det = wp.empty(n_det, dtype=wp.vec2d)
             n_contact = self._q_contact.total_point_count() * len(self.indenters)
             self._contact_state = contact.ContactState()
             for name, dtype in (("lag_g", wp.float64), ("lag_n", wp.vec3d), ("normal", wp.vec3d),
@@ -198,10 +201,22 @@ class QuasiStaticSolver(NewtonSteps):
             fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
                             values=self._contact_values(ind))
 
+    def _barrier_values(self) -> dict:
+        return {"params": self._params, "stiffness": self.settings.barrier_stiffness,
+                "j_hat": self.settings.barrier_det_f}
+
+    def _barrier_energy(self, u) -> float:
+        """The inversion barrier's energy (elasticity.py) at the 4 check points of each tet; 0 where it is off."""
+        if self.settings.barrier_det_f <= 0.0:
+            return 0.0
+        return float(fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": u},
+                                   values=self._barrier_values()))
+
     def _energy(self, u, ind) -> float:
         vals = {"params": self._params}
         e = fem.integrate(elasticity.deviatoric_energy_form, quadrature=self._q_dev, fields={"u": u}, values=vals)
         e += fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals)
+        e += self._barrier_energy(u)
         if ind.count:
             e += fem.integrate(
                 contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
@@ -217,6 +232,9 @@ class QuasiStaticSolver(NewtonSteps):
                           output_dtype=wp.vec3d)
         fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
                       output=g, add=True)
+        if self.settings.barrier_det_f > 0.0:
+            fem.integrate(elasticity.barrier_gradient_form, quadrature=self._q_det, fields=f,
+                          values=self._barrier_values(), output=g, add=True)
         if ind.count:
             fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
                             values=self._contact_values(ind))
@@ -240,6 +258,12 @@ class QuasiStaticSolver(NewtonSteps):
                         values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
         parts.append(fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol, fields=f,
                                    values=vals | qp, output_dtype=wp.float64))
+        if self._barrier_energy(self.u) > 0.0:  # only where some det F is below the barrier's threshold
+            qp = {"F_qp": self._F_det, "b_qp": self._b_det}
+            fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
+                            values=self._barrier_values() | qp | {"geometric": geometric, "clamp": int(clamp)})
+            parts.append(fem.integrate(elasticity.barrier_hessian_form, quadrature=self._q_det, fields=f,
+                                       values=qp, output_dtype=wp.float64))
         if ind.count:
             fields = {"du": self._side_trial, "v": self._side_test}
             parts.append(fem.integrate(contact.contact_hessian_form, quadrature=self._q_contact, fields=fields,
@@ -329,7 +353,7 @@ class QuasiStaticSolver(NewtonSteps):
             raise SolverDidNotConverge(
                 f"frame {frame} (indenters {names}) did not converge; tried: " + "; ".join(tried)
                 + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, max_newton_iterations="
-                f"{self.settings.max_newton_iterations}, contact stiffness {self.contact_stiffness:.4g} N/mm^3"
+                f"{self._newton_iteration_cap()}, contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
         g = self._gradient(ind)
