@@ -71,6 +71,16 @@ def cofactor_delta(F: wp.mat33d, A: wp.mat33d):
 
 
 @wp.func
+def pressure_bound(F: wp.mat33d, mu: wp.float64):
+    """mu / sigma_max(F): the largest |s| for which the twist/flip eigenvalues mu +- s sigma_k stay >= 0."""
+    U = wp.mat33d()
+    sig = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(F, U, sig, V)
+    return mu / wp.max(wp.max(wp.abs(sig[0]), wp.abs(sig[1])), wp.max(wp.abs(sig[2]), _f(1.0e-6)))
+
+
+@wp.func
 def deformation_gradient(grad_u: wp.mat33d):
     return wp.identity(n=3, dtype=wp.float64) + grad_u
 
@@ -126,13 +136,9 @@ def volumetric_state_form(
     mu = params[s.element_index][0]
     lam = params[s.element_index][1]
     p = lam * (wp.determinant(F) - _f(1.0) - mu / lam)
-    U = wp.mat33d()
-    sig = wp.vec3d()
-    V = wp.mat33d()
-    wp.svd3(F, U, sig, V)
-    bound = mu / wp.max(wp.max(wp.abs(sig[0]), wp.abs(sig[1])), wp.max(wp.abs(sig[2]), _f(1.0e-6)))
     F_qp[s.qp_index] = F
     if clamp != 0:
+        bound = pressure_bound(F, mu)
         p = wp.clamp(p, -bound, bound)
     p_qp[s.qp_index] = geometric * p
 
@@ -196,11 +202,7 @@ def barrier_state_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.ve
     kappa = stiffness * mu
     p = kappa * b[1]
     if clamp != 0:
-        U = wp.mat33d()
-        sig = wp.vec3d()
-        V = wp.mat33d()
-        wp.svd3(F, U, sig, V)
-        bound = mu / wp.max(wp.max(wp.abs(sig[0]), wp.abs(sig[1])), wp.max(wp.abs(sig[2]), _f(1.0e-6)))
+        bound = pressure_bound(F, mu)
         p = wp.clamp(p, -bound, bound)
     F_qp[s.qp_index] = F
     b_qp[s.qp_index] = wp.vec2d(geometric * p, kappa * b[2])
