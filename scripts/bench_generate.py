@@ -12,6 +12,9 @@ covers them all; the per-sequence progress lines count the frames found on disk 
 Runs the generator into a temporary folder, reads the per-stage seconds from its manifest, and writes a
 table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
 
+``--summarize DIR`` reads a dataset folder, finished or cut short, and prints what its frames' solver records say
+(physics seconds and Newton iterations per frame, per sequence) and the failures kept for resuming.
+
 ``--mesh-only`` builds and caches the gel mesh of each of those sequences (their marker layouts differ) and
 stops: for a benchmark machine without fTetWild, carry the cache folder (``TRANSTAC_SIM_CACHE``) there; its
 mesh stage then reads the cache, and the table says so.
@@ -44,9 +47,13 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          write: bool = typer.Option(True, help="update BENCHMARKS.md"),
          section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),
          mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes"),
-         out: Path | None = typer.Option(None, help="dataset folder, kept (resumable); default: a temporary one")) -> None:
+         out: Path | None = typer.Option(None, help="dataset folder, kept (resumable); default: a temporary one"),
+         summarize: Path | None = typer.Option(None, help="only print the solver records of this dataset folder")) -> None:
     if mesh_only:
         _mesh_sequences(scene, sequences)
+        return
+    if summarize:
+        print(solver_summary(summarize))
         return
     from transtac_sim.meshing.cache import cache_dir
 
@@ -79,9 +86,12 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         f"**{3600 * n / wall:.0f} frames per hour**; {len(report.frames_failed)} of "
         f"{len(manifest['samples'])} frames of {sequences} sequences failed.",
         "",
-        "| stage | seconds | seconds per frame | share |",
+        "| stage | seconds | seconds per frame | share of the stages' seconds |",
         "| --- | --- | --- | --- |",
         *rows,
+        "",
+        f"The stages' seconds add up to {stage_total:.1f} s against {wall:.1f} s wall (with several workers the "
+        "stages of different sequences overlap).",
         "",
         f"Gel meshes built in this run: {len(set(cache_dir().glob('*.npz')) - cached_before)} for {sequences} "
         "sequence(s) (a contact-free scene has none; any other was read from the mesh cache).",
@@ -95,6 +105,34 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         md_out.write_text(md + "\n")
     if write:
         update_section(REPO / "BENCHMARKS.md", section, md)
+
+
+def solver_summary(root: Path) -> str:
+    """The physics of a dataset folder (finished or cut short), from its frames' ``labels.json`` solver records and
+    the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence."""
+    import statistics
+
+    frames: dict[str, list[dict]] = {}
+    for path in sorted(root.glob("sequences/*/*/labels.json")):
+        labels = json.loads(path.read_text())
+        frames.setdefault(labels["sequence"], []).append(labels["solver"])
+    failures = [json.loads(p.read_text()) for p in sorted(root.glob(".resume/*.json"))]
+    records = [r for rs in frames.values() for r in rs]
+    lines = [f"{root}: {len(records)} frames with labels in {len(frames)} sequences; "
+             f"{len(failures)} failed frame(s) kept for resuming"]
+    lines += [f"- failed: {f['records'][0]['sequence']} frame {f['frame']}: {f['records'][0].get('reason', '')}"
+              for f in failures]
+    if records:
+        seconds = [r["seconds"] for r in records]
+        its = [r["iterations"] for r in records]
+        lines.append(f"physics seconds per frame: median {statistics.median(seconds):.2f}, mean "
+                     f"{statistics.mean(seconds):.2f}, max {max(seconds):.1f}; Newton iterations per frame: median "
+                     f"{statistics.median(its):g}, max {max(its)}; frames with sub-steps: "
+                     f"{sum(r.get('substeps', 1) > 1 for r in records)}; not converged: "
+                     f"{sum(not r['converged'] for r in records)}")
+        lines += [f"- {seq}: {len(rs)} frames, {sum(r['seconds'] for r in rs):.1f} s of physics, Newton iterations "
+                  f"{[r['iterations'] for r in rs]}" for seq, rs in frames.items()]
+    return "\n".join(lines)
 
 
 def _mesh_sequences(scene_path: Path, sequences: int) -> None:

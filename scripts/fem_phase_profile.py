@@ -10,9 +10,18 @@ phase is charged to it and not to the next host read. Time outside every listed 
 Newton loop's own host work: numpy on the gradient, step norms, copies). ``--skip-first`` leaves the first
 frame out of the totals (kernel compilation on a fresh machine).
 
+``--gpu-activity`` (CUDA only) times the frames without the per-phase synchronisation and records what the GPU
+itself did (CUPTI through ``wp.timing_begin``): kernel, copy and allocation time against the wall time, and the
+kernels that took the most. A GPU busy for a small share of the wall time is waiting on the host (launches,
+Python, host reads), and more work per launch (larger or batched systems) comes almost free.
+
 To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 0: every CG solve to its
 tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
-last system: the CG path before issue 12's third pass).
+last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tight CG tolerance, relative
+residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py).
+``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
+one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
+marker difference per frame).
 """
 
 from __future__ import annotations
@@ -24,11 +33,12 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import typer
 import warp as wp
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import QuasiStaticSolver, newton
+from transtac_sim.physics import QuasiStaticSolver, linear, newton
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
@@ -84,17 +94,31 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          linear_solver: str = typer.Option("auto", help="auto, direct or cg"),
          frames: int = typer.Option(2, min=1), skip_first: bool = typer.Option(False),
          forcing_max: float = typer.Option(newton.FORCING_MAX, min=0.0, max=1.0),
-         clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False)) -> None:
+         clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
+         gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
+         warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
+         cg_tol: float | None = typer.Option(None, help="the device CG's tight tolerance (default LinearSolver's)"),
+         save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
+         compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
+         ) -> None:
     newton.FORCING_MAX = forcing_max
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, True), (0.0, True))
     if no_estimate:
-        LinearSolver.solve_last = lambda self, rhs, rtol=1e-3: None
+        LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
+    if warp_spmv:
+        linear.block_row_operator = lambda H: H
+    if cg_tol is not None:
+        LinearSolver.__init__.__defaults__ = (cg_tol,) + LinearSolver.__init__.__defaults__[1:]
+    reference = np.load(compare_to) if compare_to else None
+    markers = []
     setup = load_setup(scene)
     physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": linear_solver})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = PhaseClock()
-    originals = [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items() for name in names]
+    originals = [] if gpu_activity else [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items()
+                                         for name in names]
+    activity: list = []
     failures = []
     solve_step = QuasiStaticSolver._solve_step
 
@@ -110,14 +134,25 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         for f in simulate_frames(setup, frames, StageClock()):
             frame_seconds.append(f.solver["seconds"])
             frame_iterations.append(f.solver["iterations"])
+            markers.append(f.markers_gel_mm)
+            diff = ""
+            if reference is not None and f.frame < len(reference["markers"]):
+                diff = f", markers differ by {np.abs(f.markers_gel_mm - reference['markers'][f.frame]).max():.2g} mm"
             print(f"frame {f.frame}: {f.solver['seconds']:.2f} s, {f.solver['iterations']} Newton iterations, "
-                  f"{f.solver['substeps']} sub-step(s)", flush=True)
+                  f"{f.solver['substeps']} sub-step(s), Fz {', '.join(f'{x[2]:.4f}' for x in f.forces_n)} N{diff}",
+                  flush=True)
             if skip_first and f.frame == 0:
                 clock.reset()
+                if gpu_activity:
+                    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        if gpu_activity:
+            activity = wp.timing_end()
     finally:
         for cls, name, original in originals:
             setattr(cls, name, original)
         QuasiStaticSolver._solve_step = solve_step
+    if save_markers:
+        np.savez(save_markers, markers=np.stack(markers))
     counted = frame_seconds[1:] if skip_first and len(frame_seconds) > 1 else frame_seconds
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
@@ -126,6 +161,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
           f"{', no step estimate' if no_estimate else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
           f"({1000 * total / max(iterations, 1):.1f} ms per iteration)")
+    if gpu_activity:
+        print_gpu_activity(activity, total)
+        return
     print("| phase | calls | s | ms per call | share |")
     print("|---|---|---|---|---|")
     for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):
@@ -138,6 +176,28 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         li = clock.linear_iterations
         print(f"linear solver iterations per solve: median {statistics.median(li):g}, max {max(li)}, "
               f"total {sum(li)} over {len(li)} solves")
+
+
+def print_gpu_activity(results: list, wall_s: float) -> None:
+    """GPU time by kind of activity and the kernels that took the most, against ``wall_s`` seconds of frames."""
+    kinds: dict[str, list[float]] = defaultdict(list)
+    kernels: dict[str, list[float]] = defaultdict(list)
+    for r in results:
+        kind = r.name.split(" ")[0] if r.filter in (wp.TIMING_KERNEL, wp.TIMING_KERNEL_BUILTIN) else r.name
+        kinds[kind].append(r.elapsed)
+        if r.filter in (wp.TIMING_KERNEL, wp.TIMING_KERNEL_BUILTIN):
+            kernels[r.name].append(r.elapsed)
+    busy = sum(sum(v) for v in kinds.values()) / 1000.0
+    print(f"GPU activity: {busy:.3f} s recorded over {wall_s:.2f} s of frames ({busy / max(wall_s, 1e-9):.1%}; "
+          f"overlapping activities count once each)")
+    print("| activity | count | s | share of wall |")
+    print("|---|---|---|---|")
+    for kind, v in sorted(kinds.items(), key=lambda kv: -sum(kv[1])):
+        print(f"| {kind} | {len(v)} | {sum(v) / 1000:.3f} | {sum(v) / 1000 / wall_s:.1%} |")
+    print("| kernel | launches | s | mean us |")
+    print("|---|---|---|---|")
+    for name, v in sorted(kernels.items(), key=lambda kv: -sum(kv[1]))[:15]:
+        print(f"| {name[:90]} | {len(v)} | {sum(v) / 1000:.3f} | {1000 * sum(v) / len(v):.1f} |")
 
 
 if __name__ == "__main__":

@@ -1,20 +1,20 @@
 """Linear solves for the Newton steps: H du = -g with some degrees of freedom fixed (du = 0 there).
 
 - ``"direct"``: a sparse Cholesky (CHOLMOD) or LU (SuperLU) factorisation on the host, on the free
-  rows/columns only (see ``_factorise``). Fastest on the CPU for the mesh sizes used here. The factorisation is kept: later Newton steps are
-  solved by conjugate gradients preconditioned with it (a few iterations while the Hessian has changed
-  little) and the matrix is factorised again only when that does not converge in ``reuse_max_iterations``.
-  ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD finds the matrix is not
-  positive definite (Newton then takes the clamped Hessian, see newton.py).
-- ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the
-  GPU path); the fixed rows/columns are projected out with ``warp.fem.project_linear_system``. Its relative
-  tolerance is Newton's forcing term (inexact Newton: loose far from the solution, tight near it). Where CG
-  does not reach its tolerance in ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a
-  sharp tip), that system is solved by the direct path instead (``cg_fallbacks`` counts them). The last
-  converged system's matrix and preconditioner are kept for ``solve_last``. Block-Jacobi because it is the
-  cheapest per solve here: Warp's FSAI halves CG's iterations but its set-up (60 ms to 4 s on a 10^5-dof
-  Newton system, H100) costs more than it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md
-  ``linear_solvers_gpu``).
+  rows/columns only (see ``_factorise``). Fastest on the CPU for the mesh sizes used here. The factorisation
+  is kept: later Newton steps are solved by conjugate gradients preconditioned with it (a few iterations while
+  the Hessian has changed little) and the matrix is factorised again only when that does not converge in
+  ``reuse_max_iterations``. ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
+  finds the matrix is not positive definite (Newton then takes the clamped Hessian, see newton.py).
+- ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the GPU
+  path), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
+  projected out with ``warp.fem.project_linear_system``. Its relative tolerance is Newton's forcing term
+  (inexact Newton: loose far from the solution, tight near it). Where CG does not reach its tolerance in
+  ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a sharp tip), that system is solved by
+  the direct path instead (``cg_fallbacks`` counts them). The last converged system's matrix and
+  preconditioner are kept for ``solve_last``. Block-Jacobi because it is the cheapest per solve here: Warp's
+  FSAI halves CG's iterations but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) costs more than
+  it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ import warp as wp
 import warp.fem as fem
 from warp.optim.linear import cg, preconditioner
 from warp.sparse import BsrMatrix
+
+from transtac_sim.physics.sparse_product import block_row_operator
 
 
 def bsr_to_scipy(A: BsrMatrix) -> sp.csr_matrix:
@@ -217,11 +219,12 @@ class LinearSolver:
             exact_below: float) -> tuple[bool, int]:
         """CG on H x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
         (converged, iterations); a NaN in x makes the residual NaN: not converged."""
-        iters, err, atol = cg(H, b, x, tol=rtol, maxiter=maxiter, M=M, check_every=25)
+        A = block_row_operator(H)
+        iters, err, atol = cg(A, b, x, tol=rtol, maxiter=maxiter, M=M, check_every=25)
         total = int(iters)
         if float(err) <= float(atol) and rtol > self.cg_tol and exact_below > 0.0 \
                 and float(np.max(np.abs(x.numpy()))) < exact_below:
-            iters, err, atol = cg(H, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
+            iters, err, atol = cg(A, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
             total += int(iters)
         return float(err) <= float(atol), total
 

@@ -173,17 +173,20 @@ class QuasiStaticSolver(NewtonSteps):
         e_top = 3.0 * float(np.max(self._params_np[top_tets, 0]))
         return self.settings.stiffness_factor * e_top / (h / self.settings.degree)
 
-    def _indenter_struct(self, poses, prev_poses) -> contact.Indenters:
+    def _indenter_struct(self, poses, prev_poses, which: list[int] | None = None) -> contact.Indenters:
+        """The indenters ``which`` (default all) at ``poses``, having moved from ``prev_poses`` (one each)."""
+        which = list(range(len(self.indenters))) if which is None else which
+        chosen = [self.indenters[i] for i in which]
         s = contact.Indenters()
         dev = self.device
-        s.mesh = wp.array([m.id for m in self._meshes], dtype=wp.uint64, device=dev)
+        s.mesh = wp.array([self._meshes[i].id for i in which], dtype=wp.uint64, device=dev)
         s.pose = wp.array(np.stack(poses), dtype=wp.mat44d, device=dev)
         s.pose_inv = wp.array(np.stack([np.linalg.inv(P) for P in poses]), dtype=wp.mat44d, device=dev)
         rel = [P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses, strict=False)]
         s.relative = wp.array(np.stack(rel), dtype=wp.mat44d, device=dev)
-        s.max_dist = wp.array([2.0 * i.bounding_radius_mm + 1.0 for i in self.indenters], dtype=wp.float64, device=dev)
-        s.friction = wp.array([i.friction for i in self.indenters], dtype=wp.float64, device=dev)
-        s.count = len(self.indenters)
+        s.max_dist = wp.array([2.0 * i.bounding_radius_mm + 1.0 for i in chosen], dtype=wp.float64, device=dev)
+        s.friction = wp.array([i.friction for i in chosen], dtype=wp.float64, device=dev)
+        s.count = len(chosen)
         s.stiffness = self.contact_stiffness
         s.slip_eps = self.settings.slip_eps_mm
         return s
@@ -296,11 +299,7 @@ class QuasiStaticSolver(NewtonSteps):
         self.u_prev.dof_values.zero_()
         self.u_lag.dof_values.zero_()
         for i in range(len(poses)):
-            one = self._indenter_struct([poses[i]], [poses[i]])
-            one.mesh = wp.array([self._meshes[i].id], dtype=wp.uint64, device=self.device)
-            one.max_dist = wp.array([2.0 * self.indenters[i].bounding_radius_mm + 1.0], dtype=wp.float64,
-                                    device=self.device)
-            depth = self._max_penetration(one)
+            depth = self._max_penetration(self._indenter_struct([poses[i]], [poses[i]], which=[i]))
             if depth > self.settings.penetration_tol_mm:
                 raise IndenterStartsInsideGel(
                     f"indenter {self.indenters[i].name!r} starts {depth:.4g} mm inside the undeformed gel "
