@@ -109,7 +109,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if warp_spmv:
         linear.block_row_operator = lambda H: H
     if cg_tol is not None:
-        LinearSolver.__init__.__defaults__ = (cg_tol,) + LinearSolver.__init__.__defaults__[1:]
+        LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
     reference = np.load(compare_to) if compare_to else None
     markers = []
     setup = load_setup(scene)

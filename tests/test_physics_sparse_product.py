@@ -11,8 +11,8 @@ from transtac_sim.physics.sparse_product import block_row_operator
 
 
 def _pressed_hessian():
-    """The summed Hessian of a sphere pressed 0.3 mm into a small P2 block (elastic, barrier-free and contact parts,
-    as Newton assembles them), and the solver."""
+    """The summed Newton Hessian (elastic, barrier where it acts, contact with friction) of a sphere pressed 0.3 mm
+    into a small P2 block, as the device CG receives it."""
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
     solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])

@@ -1,15 +1,16 @@
 """The Newton systems' matrix-vector product on the device: z = alpha A x + beta y for a 3x3-block CSR matrix.
 
 The device CG (linear.py) spends most of its time in this product: on the press-and-slide Hessian (97k dofs, about
-1.1M blocks of 3x3 float64, 80 MB) ``warp.sparse.bsr_mv`` took 125 us per call on an H100
-(``scripts/fem_phase_profile.py --gpu-activity``), several times what reading the blocks once costs. Warp's
-kernel gives each thread one scalar row and walks its blocks: neighbouring threads read 24-byte pieces of blocks
-72 bytes apart, and a row's ~35 blocks are read one after another by one thread.
+1.1M blocks of 3x3 float64, 80 MB) ``warp.sparse.bsr_mv`` took 123 us per call on an H100
+(``scripts/fem_phase_profile.py --gpu-activity``, BENCHMARKS.md ``fem_spmv_gpu``), several times what reading the
+blocks once costs. Warp's kernel gives each thread one scalar row and walks its blocks: neighbouring threads read
+24-byte pieces of blocks 72 bytes apart, and a row's ~35 blocks are read one after another by one thread.
 
 Here a group of ``LANES`` threads (one warp) shares one block row: lane l takes blocks l, l + LANES, ... of the
 row, so the warp reads consecutive whole blocks (coalesced), and the lanes' 3-vectors are summed with a tile
-reduction (the stride is ``wp.block_dim()``). Same arithmetic per block, another order of summation (results differ from ``bsr_mv`` by round-off).
-On the CPU Warp runs tiles with one thread per group, which is ``bsr_mv``'s order per row.
+reduction: 40 us per call on the same matrix. Same arithmetic per block, another order of summation (results differ
+from ``bsr_mv`` by round-off). The stride is ``wp.block_dim()``, not ``LANES``: on the CPU Warp runs a group with
+fewer threads.
 """
 
 from __future__ import annotations
