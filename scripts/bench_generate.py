@@ -84,7 +84,9 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         f"{n} labelled stereo frames ({len(manifest['scene']['outputs']['cameras'])} cameras x "
         f"{', '.join(manifest['scene']['outputs']['illuminations'])}) in {wall:.1f} s wall{resumed}: "
         f"**{3600 * n / wall:.0f} frames per hour**; {len(report.frames_failed)} of "
-        f"{len(manifest['samples'])} frames of {sequences} sequences failed.",
+        f"{len(manifest['samples'])} frames of {sequences} sequences failed."
+        + (f" Executor {executor}, {workers} worker(s)" + (f" on the GPUs with Ray ids {', '.join(report.gpus_used)}"
+                                                           if report.gpus_used else "") + "."),
         "",
         "| stage | seconds | seconds per frame | share of the stages' seconds |",
         "| --- | --- | --- | --- |",

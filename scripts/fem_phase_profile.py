@@ -18,7 +18,9 @@ Python, host reads), and more work per launch (larger or batched systems) comes 
 To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 0: every CG solve to its
 tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
 last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tight CG tolerance, relative
-residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py).
+residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--warp-cg``
+(Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
+``--clamped-only``; the two flags together are the device path before definite_cg.py).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
 one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
 marker difference per frame).
@@ -36,9 +38,11 @@ from pathlib import Path
 import numpy as np
 import typer
 import warp as wp
+from warp.optim.linear import cg
 
 from transtac_sim.dataset.sequence import StageClock
 from transtac_sim.physics import QuasiStaticSolver, linear, newton
+from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
@@ -58,6 +62,8 @@ class PhaseClock:
         self.seconds: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
         self.linear_iterations: list[int] = []
+        self.linear_solver: LinearSolver | None = None
+        self._not_definite_before = 0  # the LinearSolver's count at the last reset
         self._stack: list[list] = []  # [name, start, child seconds]
 
     def wrap(self, cls, name: str):
@@ -80,6 +86,7 @@ class PhaseClock:
                     clock._stack[-1][2] += spent
                 if isinstance(obj, LinearSolver) and name == "solve":
                     clock.linear_iterations.append(int(obj.last_iterations))
+                    clock.linear_solver = obj
 
         setattr(cls, name, timed)
         return original
@@ -88,6 +95,12 @@ class PhaseClock:
         self.seconds.clear()
         self.calls.clear()
         self.linear_iterations.clear()
+        self._not_definite_before = self.linear_solver.not_definite if self.linear_solver else 0
+
+    @property
+    def not_definite(self) -> int:
+        """Device solves stopped at non-positive curvature since the last reset."""
+        return self.linear_solver.not_definite - self._not_definite_before if self.linear_solver else 0
 
 
 def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
@@ -98,6 +111,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
          cg_tol: float | None = typer.Option(None, help="the device CG's tight tolerance (default LinearSolver's)"),
+         warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
@@ -108,6 +122,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
     if warp_spmv:
         linear.block_row_operator = lambda H: H
+    if warp_cg:
+        linear.definite_cg = _warp_cg
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
     reference = np.load(compare_to) if compare_to else None
@@ -158,9 +174,11 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
           f"forcing max {forcing_max:g}{', clamped Hessian only' if clamped_only else ''}"
-          f"{', no step estimate' if no_estimate else ''}: "
+          f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
           f"({1000 * total / max(iterations, 1):.1f} ms per iteration)")
+    if not gpu_activity:
+        print(f"device solves stopped at non-positive curvature: {clock.not_definite}")
     if gpu_activity:
         print_gpu_activity(activity, total)
         return
@@ -176,6 +194,12 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         li = clock.linear_iterations
         print(f"linear solver iterations per solve: median {statistics.median(li):g}, max {max(li)}, "
               f"total {sum(li)} over {len(li)} solves")
+
+
+def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0):
+    """``definite_cg``'s interface on Warp's ``cg`` (which never reports an indefinite matrix)."""
+    iterations, err, tol = cg(A, b, x, tol=rtol, atol=atol, maxiter=maxiter, M=M, check_every=25)
+    return CgResult(float(err) <= float(tol), False, int(iterations))
 
 
 def print_gpu_activity(results: list, wall_s: float) -> None:

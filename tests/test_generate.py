@@ -16,7 +16,7 @@ import pytest
 from pycocotools.coco import COCO
 
 from transtac_sim.dataset import contract
-from transtac_sim.dataset.generate import generate
+from transtac_sim.dataset.generate import generate, ray_gpu_share
 from transtac_sim.dataset.validate import validate_dataset
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -105,6 +105,20 @@ def test_ray_backend_equals_local(reference: Path, tmp_path: Path):
     assert _snapshot(tmp_path / "ray") == _snapshot(reference)
 
 
+def test_ray_gpu_workers_equal_local(reference: Path, tmp_path: Path):
+    """On a cluster with GPUs (here 2 logical ones on a CPU machine) sequences run on GPU-holding actors (2 per
+    GPU with 4 workers, ``ray_gpu_share``): both GPUs solve sequences, and the dataset is the same."""
+    ray = pytest.importorskip("ray")
+    ray.shutdown()
+    ray.init(num_cpus=2, num_gpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        report = generate(SCENE, tmp_path / "ray_gpus", frames=2, executor="ray", workers=4)
+    finally:
+        ray.shutdown()
+    assert report.gpus_used == ["0", "1"]
+    assert _snapshot(tmp_path / "ray_gpus") == _snapshot(reference)
+
+
 def test_local_workers_equal_inline(reference: Path, tmp_path: Path):
     generate(SCENE, tmp_path / "workers", frames=2, workers=2)
     assert _snapshot(tmp_path / "workers") == _snapshot(reference)
@@ -117,3 +131,10 @@ def test_refuses_to_mix_datasets(reference: Path):
     with pytest.raises(ConfigError, match="another scene, seed or frame count"):
         generate(SCENE, reference, frames=2, seed=12345)
     assert _snapshot(reference) == before
+
+
+@pytest.mark.parametrize("gpus, workers, share", [(1, 1, 1.0), (2, 1, 1.0), (2, 2, 1.0), (2, 4, 0.5), (1, 2, 0.5),
+                                                  (2, 3, 0.5), (4, 12, 1 / 3)])
+def test_ray_gpu_share(gpus: int, workers: int, share: float):
+    """Each GPU holds at most ceil(workers / gpus) sequence tasks, and all GPUs are used."""
+    assert ray_gpu_share(gpus, workers) == pytest.approx(share)

@@ -141,8 +141,9 @@ def generate(scene: Path = SceneArg,
              frames: int = typer.Option(None, min=1, help="frames per sequence (default: the whole trajectory)"),
              seed: int = typer.Option(None, min=0, help="replace the scene's seed"),
              sequences: int = typer.Option(None, min=1, help="replace the scene's sequence count"),
-             workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray CPUs); on a "
-                                                         "one-GPU machine keep 1 (several share the GPU, slower)"),
+             workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray tasks: with "
+                                                         "GPUs, workers / GPUs per GPU); 2 per GPU overlap rendering "
+                                                         "with physics (1.38x on an H100), more are slower"),
              executor: str = typer.Option("local", help="local | ray"),
              address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)"),
              retry_failed: bool = typer.Option(False, help="on resume, solve again the sequences whose frame failed "
@@ -180,6 +181,8 @@ def generate(scene: Path = SceneArg,
     tab.add_row("coco", ", ".join(f"{k}: {v} images" for k, v in report.coco_images.items()) or "(no UV labels asked)")
     tab.add_row("contact sheet", str(report.contact_sheet))
     tab.add_row("total", f"{report.seconds:.1f} s")
+    if report.gpus_used:
+        tab.add_row("GPUs (Ray ids)", ", ".join(report.gpus_used))
     console.print(tab)
     if report.frames_failed:
         raise typer.Exit(1)

@@ -15,7 +15,7 @@ import multiprocessing
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from transtac_sim.config import ConfigError, load_scene
@@ -44,6 +44,7 @@ class GenerateReport:
     coco_images: dict[str, int]
     contact_sheet: Path | None
     seconds: float = 0.0
+    gpus_used: list[str] = field(default_factory=list)  # Ray ids of the GPUs that solved sequences (Ray on GPUs)
 
 
 def _run_task(task: SequenceTask) -> list[dict]:
@@ -64,20 +65,51 @@ def _run_local(tasks: list[SequenceTask], workers: int) -> Iterator[list[dict]]:
             yield fut.result()
 
 
-def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int) -> Iterator[list[dict]]:
-    """Each sequence a Ray task; on a cluster with GPUs each task holds one GPU (Ray sets its
-    CUDA_VISIBLE_DEVICES), so a machine with several GPUs runs one sequence on each at once."""
+def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int, gpus_used: set[str]) -> Iterator[list[dict]]:
+    """Sequences on Ray. Without GPUs each sequence is a task (as many run at once as the cluster has CPUs).
+    With G GPUs each of G x ceil(workers / G) actors holds 1 / ceil(workers / G) of a GPU (Ray sets its
+    CUDA_VISIBLE_DEVICES) and solves sequences one after another: every GPU is used, ``workers`` = 2 G puts two on
+    each, so that one renders while the other solves (on one H100 two workers gave 1.38x the frames per hour of
+    one, BENCHMARKS.md ``generate_train_random_gpu_spmv``), and a worker keeps its GPU, its CUDA context and its
+    loaded kernels from one sequence to the next. Adds the Ray ids of the GPUs that solved sequences to
+    ``gpus_used``."""
     import ray
+    from ray.util import ActorPool
 
     if not ray.is_initialized():
         ray.init(address=address, num_cpus=None if address else max(1, workers), include_dashboard=False,
                  log_to_driver=False, ignore_reinit_error=True)
-    gpus = ray.cluster_resources().get("GPU", 0)
-    remote = ray.remote(num_gpus=1)(_run_task) if gpus else ray.remote(_run_task)
-    pending = [remote.remote(t) for t in tasks]
-    while pending:
-        ready, pending = ray.wait(pending, num_returns=1)
-        yield ray.get(ready[0])
+    gpus = int(ray.cluster_resources().get("GPU", 0))
+    if not gpus:
+        remote = ray.remote(_run_task)
+        pending = [remote.remote(t) for t in tasks]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(ready[0])
+        return
+    share = ray_gpu_share(gpus, workers)
+    actor = ray.remote(num_gpus=share, num_cpus=0)(_SequenceWorker)
+    pool = ActorPool([actor.remote() for _ in range(round(gpus / share))])
+    for gpu_ids, frames in pool.map_unordered(lambda a, t: a.run.remote(t), tasks):
+        gpus_used.update(gpu_ids)
+        yield frames
+
+
+class _SequenceWorker:
+    """A Ray actor that solves sequences on the GPU share it was given."""
+
+    def run(self, task: SequenceTask) -> tuple[list[str], list[dict]]:
+        """(the Ray ids of this actor's GPUs, the sequence's frame statuses)"""
+        import ray
+
+        return [str(i) for i in ray.get_gpu_ids()], _run_task(task)
+
+
+def ray_gpu_share(gpus: float, workers: int) -> float:
+    """The GPU share of one sequence task: 1 while there are no more workers than GPUs, else 1 / (workers per
+    GPU, rounded up) (Ray packs tasks whose shares add up to at most 1 onto one GPU)."""
+    per_gpu = -(-max(1, workers) // max(1, int(gpus)))
+    return 1.0 / per_gpu
 
 
 def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = None, seed: int | None = None,
@@ -109,7 +141,8 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
              for i in range(scene.sequences)]
     results: list[dict] = []
     total = len(tasks) * limit
-    runs = _run_ray(tasks, address, workers) if executor == "ray" else _run_local(tasks, workers)
+    gpus_used: set[str] = set()
+    runs = _run_ray(tasks, address, workers, gpus_used) if executor == "ray" else _run_local(tasks, workers)
     for frames_of_sequence in runs:
         results += frames_of_sequence
         if on_frames:
@@ -132,4 +165,4 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
     sheet = dataset_contact_sheet(root, done, scene.outputs, seed=scene.seed)
     failed = [s for s in manifest["samples"] if s["status"] == "failed"]
     return GenerateReport(root, len(done), failed, sum(r.get("skipped", False) for r in results), timings,
-                          sorted(stages), coco, sheet, time.perf_counter() - t0)
+                          sorted(stages), coco, sheet, time.perf_counter() - t0, sorted(gpus_used))

@@ -6,8 +6,9 @@
   the Hessian has changed little) and the matrix is factorised again only when that does not converge in
   ``reuse_max_iterations``. ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
   finds the matrix is not positive definite (Newton then takes the clamped Hessian, see newton.py).
-- ``"cg"``: ``warp.optim.linear.cg`` with a block-Jacobi preconditioner, on the solver's device (the GPU
-  path), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
+- ``"cg"``: conjugate gradients with a block-Jacobi preconditioner on the solver's device (the GPU path), stopping
+  where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
+  returns None), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
   projected out with ``warp.fem.project_linear_system``. Its relative tolerance is Newton's forcing term
   (inexact Newton: loose far from the solution, tight near it). Where CG does not reach its tolerance in
   ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a sharp tip), that system is solved by
@@ -24,9 +25,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 import warp.fem as fem
-from warp.optim.linear import cg, preconditioner
+from warp.optim.linear import preconditioner
 from warp.sparse import BsrMatrix
 
+from transtac_sim.physics.definite_cg import definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
 
 
@@ -133,6 +135,7 @@ class LinearSolver:
         self.reuse_rtol = reuse_rtol
         self.factorisations = 0
         self.cg_fallbacks = 0
+        self.not_definite = 0  # device solves stopped because the matrix is not positive definite
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
         self._static: tuple[int, sp.csr_matrix] | None = None
@@ -218,15 +221,17 @@ class LinearSolver:
     def _cg(self, H, M, b: wp.array, x: wp.array, rtol: float, maxiter: int,
             exact_below: float) -> tuple[bool, int]:
         """CG on H x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
-        (converged, iterations); a NaN in x makes the residual NaN: not converged."""
+        (converged, iterations). Not converged also where H is found not to be positive definite (definite_cg.py;
+        ``not_definite`` counts those; a NaN stops it the same way)."""
         A = block_row_operator(H)
-        iters, err, atol = cg(A, b, x, tol=rtol, maxiter=maxiter, M=M, check_every=25)
-        total = int(iters)
-        if float(err) <= float(atol) and rtol > self.cg_tol and exact_below > 0.0 \
+        result = definite_cg(A, b, x, rtol, maxiter, M)
+        total = result.iterations
+        if result.converged and rtol > self.cg_tol and exact_below > 0.0 \
                 and float(np.max(np.abs(x.numpy()))) < exact_below:
-            iters, err, atol = cg(A, b, x, tol=self.cg_tol, maxiter=self.cg_maxiter, M=M, check_every=25)
-            total += int(iters)
-        return float(err) <= float(atol), total
+            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M)
+            total += result.iterations
+        self.not_definite += result.not_definite
+        return result.converged, total
 
     def forget(self) -> None:
         """The next ``solve_last`` returns None until a new system is solved (e.g. the energy has changed)."""

@@ -37,6 +37,13 @@ CG was 80 % of a press-and-slide frame on an H100, 500 iterations per Newton sys
 Newton's systems are now solved inexactly (``FORCING_MAX``; tightened to 1e-8 once the step is small enough to
 decide convergence), and the step estimate and early lag moves that the host path had (``solve_last``) use
 the last device system: 25 CG iterations per solve instead of 500, 1.4x faster frames.
+
+Issue 12, fourth pass (BENCHMARKS.md ``fem_definite_cg_gpu``): the device path took the clamped Hessian always,
+because Warp's CG cannot tell an indefinite matrix before its iteration cap; where the clamp acts (in compression,
+almost everywhere) Newton then converges linearly. The device CG now stops at its first direction of non-positive
+curvature (definite_cg.py), so the device tries the exact Hessian first as the host path does, and solves its
+systems to a tighter forcing term (``FORCING_MAX`` 0.01: an exact-Hessian step solved to 0.1 wastes the Hessian's
+accuracy): press_slide frames 1-5 in 82 Newton iterations instead of 111, 1.26x faster on an H100.
 """
 
 from __future__ import annotations
@@ -51,7 +58,10 @@ from scipy.spatial.transform import Rotation
 #: of min(FORCING_MAX, |g| / |g_first|), |g_first| the gradient at the (sub)step's first pass: loose while
 #: far from the solution, where an exact Newton step is wasted, and tightening in proportion to |g| (which
 #: keeps Newton's convergence quadratic). scripts/bench_linear_solvers.py: CG iterations against tolerance.
-FORCING_MAX = 0.1
+#: 0.01 rather than 0.1 since the device takes the exact Hessian where it is positive definite: on press_slide
+#: frames 1-5 (H100, scripts/fem_phase_profile.py --forcing-max) 82 Newton iterations and 7.6-7.9 s against 103-105
+#: and 9.2-9.3 s with 0.1, the same CG iterations in all.
+FORCING_MAX = 0.01
 
 
 class NewtonSteps:
@@ -162,13 +172,11 @@ class NewtonSteps:
         return cap if cap is not None else (40 if self._linear.method == "direct" else 120)
 
     def _hessian_ladder(self) -> tuple[tuple[float, bool], ...]:
-        """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one (host solver only:
-        CHOLMOD tells at once when it is not positive definite), the clamped one, then Gauss-Newton
-        (elasticity.py). On the device the exact one is not tried: CG cannot tell an indefinite matrix before
-        running out of iterations, and on the press-and-slide frames (H100) the failed attempts cost more CG
-        iterations than the fewer Newton iterations saved (scripts/fem_phase_profile.py --help)."""
-        exact = ((1.0, False),) if self._linear.method == "direct" else ()
-        return exact + ((1.0, True), (0.0, True))
+        """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one, the clamped one, then
+        Gauss-Newton (elasticity.py). A Hessian is passed over where the linear solver finds it is not positive
+        definite: CHOLMOD on the host, the device CG at its first direction of non-positive curvature
+        (definite_cg.py)."""
+        return ((1.0, False), (1.0, True), (0.0, True))
 
     def _move_lag(self, ind, remaining: float) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to

@@ -1,0 +1,67 @@
+"""The device CG that stops at non-positive curvature (physics/definite_cg.py), on the CPU, against scipy."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import warp as wp
+from warp.optim.linear import preconditioner
+
+from transtac_sim.physics.definite_cg import definite_cg
+from transtac_sim.physics.sparse_product import block_row_operator
+
+N = 200  # 3-vectors
+
+
+def _laplacian_3d(shift: float) -> sp.csr_matrix:
+    """A 1D chain Laplacian of N nodes with 3 coupled components per node (symmetric), minus ``shift`` I: its
+    eigenvalues lie within [0.47, 5.6] - shift (the chain's in [0, 4], the coupling's in [0.47, 1.6]), so shift = 0
+    is positive definite and shift = 1 is not (checked)."""
+    lap = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(N, N))
+    coupling = np.array([[1.5, 0.2, 0.0], [0.2, 1.0, 0.1], [0.0, 0.1, 0.5]])
+    return (sp.kron(lap, np.eye(3)) + sp.kron(sp.eye(N), coupling) - shift * sp.eye(3 * N)).tocsr()
+
+
+def _warp_bsr(A: sp.csr_matrix):
+    B = A.tobsr(blocksize=(3, 3))
+    B.sort_indices()
+    rows = np.repeat(np.arange(N), np.diff(B.indptr))
+    return wp.sparse.bsr_from_triplets(N, N, wp.array(rows, dtype=int), wp.array(B.indices, dtype=int),
+                                       wp.array(B.data, dtype=wp.mat33d))
+
+
+@pytest.mark.parametrize("jacobi", [False, True])
+def test_definite_cg_solves_a_positive_definite_system_to_its_tolerance(jacobi: bool):
+    A = _laplacian_3d(0.0)
+    H = _warp_bsr(A)
+    b = np.random.default_rng(0).standard_normal((N, 3))
+    x = wp.zeros(N, dtype=wp.vec3d)
+    M = preconditioner(H, ptype="block_jacobi_direct") if jacobi else None
+    result = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), x, 1e-10, 3 * N, M)
+    assert result.converged and not result.not_definite and 0 < result.iterations <= 3 * N
+    residual = np.linalg.norm(A @ x.numpy().reshape(-1) - b.reshape(-1))
+    assert residual <= 1e-10 * np.linalg.norm(b)
+    np.testing.assert_allclose(x.numpy().reshape(-1), spla.spsolve(A.tocsc(), b.reshape(-1)), rtol=1e-7, atol=1e-9)
+    # started at the solution it does nothing; a loose tolerance stops it early
+    again = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), x, 1e-8, 3 * N, M)
+    assert again.converged and again.iterations == 0
+    loose = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), wp.zeros(N, dtype=wp.vec3d), 1e-2,
+                        3 * N, M)
+    assert loose.converged and loose.iterations < result.iterations
+
+
+def test_definite_cg_stops_where_the_matrix_is_not_positive_definite():
+    A = _laplacian_3d(1.0)
+    assert spla.eigsh(A, k=1, which="SA")[0][0] < 0.0
+    H = _warp_bsr(A)
+    b = np.random.default_rng(1).standard_normal((N, 3))
+    result = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), wp.zeros(N, dtype=wp.vec3d), 1e-10,
+                         10 * N)
+    assert result.not_definite and not result.converged and result.iterations < 3 * N
+
+
+def test_definite_cg_reports_its_iteration_cap():
+    H = _warp_bsr(_laplacian_3d(0.0))
+    b = wp.array(np.random.default_rng(2).standard_normal((N, 3)), dtype=wp.vec3d)
+    result = definite_cg(block_row_operator(H), b, wp.zeros(N, dtype=wp.vec3d), 1e-12, 5)
+    assert not result.converged and not result.not_definite and result.iterations == 5

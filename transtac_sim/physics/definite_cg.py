@@ -1,0 +1,167 @@
+"""Preconditioned conjugate gradients on the solver's device that stop where the matrix is not positive definite.
+
+Newton's exact Hessian (elasticity.py) is indefinite far from equilibrium (in compression its volumetric term's
+twist/flip eigenvalues mu + s sigma_k are negative at nearly every tet), and positive definite near it. The host
+path learns which from CHOLMOD and takes the clamped Hessian only where needed (newton.py ``_hessian_ladder``);
+Warp's ``cg`` cannot tell: on an indefinite system it runs to its iteration cap (BENCHMARKS.md
+``fem_newton_variants_gpu``: trying the exact Hessian that way cost more CG iterations than it saved Newton ones).
+This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7.1) stops at the first sign:
+
+    r = b - A x,  z = M r,  p = z
+    repeat:  q = A p,  c = p . q             c <= 0: A is not positive definite along p  -> stop
+             alpha = (r . z) / c,  x += alpha p,  r -= alpha q
+             z = M r                         r . z <= 0: neither is the preconditioner   -> stop
+             p = z + (r . z)_new / (r . z) p
+    until |r| <= tol (= max(rtol |b|, atol)) or ``maxiter`` iterations.
+
+It runs on the device like ``warp.optim.linear.cg``: one iteration's kernels are captured once per solve, and
+with conditional CUDA graphs (CUDA 12.4+) the loop itself is captured too (``wp.capture_while``), so the host
+waits only for the end; otherwise the captured iteration is launched ``CHECK_EVERY`` times between host reads.
+The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration) is one small float64 array, so the kernels of
+a stopped solve do nothing. Dot products are block-wise tile sums added atomically (round-off varies from run to
+run in the last bits, as the assembly's atomics already do).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from warp.optim.linear import LinearOperator
+
+CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
+DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
+DOT_THREADS = 256
+
+# the state array's slots
+RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE = (wp.constant(k) for k in range(8))
+# why it stopped (the STOP slot)
+CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in range(1, 5))
+
+
+@dataclass(frozen=True)
+class CgResult:
+    converged: bool
+    not_definite: bool  # stopped at p . A p <= 0 (or r . M r <= 0): the matrix (or M) is not positive definite
+    iterations: int
+
+
+@wp.kernel(enable_backward=False)
+def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.array(dtype=wp.float64), slot: int,
+         blocks: int):
+    block, lane = wp.tid()
+    partial = wp.float64(0.0)
+    for i in range(block * wp.block_dim() + lane, a.shape[0], blocks * wp.block_dim()):
+        partial += wp.dot(a[i], b[i])
+    total = wp.tile_sum(wp.tile(partial))
+    if lane == 0:
+        wp.atomic_add(state, slot, total[0])
+
+
+@wp.kernel(enable_backward=False)
+def _zero(state: wp.array(dtype=wp.float64), first: int, count: int):
+    for k in range(count):
+        state[first + k] = wp.float64(0.0)
+
+
+@wp.kernel(enable_backward=False)
+def _step_x_r(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.vec3d),
+              x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    if state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0):
+        alpha = state[RZ] / state[PQ]
+        x[i] = x[i] + alpha * p[i]
+        r[i] = r[i] - alpha * q[i]
+
+
+@wp.kernel(enable_backward=False)
+def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    if state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0) and state[RZ_NEW] > wp.float64(0.0):
+        p[i] = z[i] + (state[RZ_NEW] / state[RZ]) * p[i]
+
+
+@wp.kernel(enable_backward=False)
+def _decide(state: wp.array(dtype=wp.float64), maxiter: int, condition: wp.array(dtype=wp.int32)):
+    """After an iteration's updates: the stop reason, the iteration count and whether to go on."""
+    if state[ACTIVE] != wp.float64(0.0):
+        state[ITER] = state[ITER] + wp.float64(1.0)
+        if not state[PQ] > wp.float64(0.0):
+            state[STOP] = NOT_DEFINITE
+        elif state[RR] <= state[TOL2]:
+            state[STOP] = CONVERGED
+        elif not state[RZ_NEW] > wp.float64(0.0):
+            state[STOP] = PRECONDITIONER_NOT_DEFINITE
+        elif state[ITER] >= wp.float64(maxiter):
+            state[STOP] = ITERATION_CAP
+        state[RZ] = state[RZ_NEW]
+        if state[STOP] != wp.float64(0.0):
+            state[ACTIVE] = wp.float64(0.0)
+    condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
+
+
+def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
+                M: LinearOperator | None = None, atol: float = 0.0) -> CgResult:
+    """Solves A x = b from the given x (vec3d arrays, updated in place) to |b - A x| <= max(rtol |b|, atol),
+    stopping early where A (or M) is found not to be positive definite (x then holds the last iterate)."""
+    device = b.device
+    n = b.shape[0]
+    r, z, p, q = (wp.empty_like(b) for _ in range(4))
+    state = wp.zeros(8, dtype=wp.float64, device=device)
+    condition = wp.zeros(1, dtype=wp.int32, device=device)
+
+    def dot(u, v, slot):
+        wp.launch_tiled(_dot, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device, inputs=[u, v, state, slot, DOT_BLOCKS])
+
+    def precondition():
+        if M is None:
+            wp.copy(z, r)
+        else:
+            M.matvec(r, z, z, 1.0, 0.0)
+
+    # r = b - A x, z = M r, p = z, and the state before the first iteration
+    A.matvec(x, b, r, -1.0, 1.0)
+    precondition()
+    wp.copy(p, z)
+    dot(r, z, RZ)
+    dot(r, r, RR)
+    dot(b, b, TOL2)
+    s = state.numpy()
+    tol2 = max(rtol * rtol * s[TOL2], atol * atol)
+    if s[RR] <= tol2:
+        return CgResult(True, False, 0)
+    if not s[RZ] > 0.0:
+        return CgResult(False, True, 0)
+    state.assign(np.array([s[RZ], 0.0, 0.0, s[RR], tol2, 0.0, 0.0, 1.0]))
+    condition.fill_(1)
+
+    def iteration():
+        wp.launch(_zero, dim=1, device=device, inputs=[state, RZ_NEW, 3])  # RZ_NEW, PQ, RR
+        A.matvec(p, q, q, 1.0, 0.0)
+        dot(p, q, PQ)
+        wp.launch(_step_x_r, dim=n, device=device, inputs=[state, p, q, x, r])
+        precondition()
+        dot(r, z, RZ_NEW)
+        dot(r, r, RR)
+        wp.launch(_step_p, dim=n, device=device, inputs=[state, z, p])
+        wp.launch(_decide, dim=1, device=device, inputs=[state, int(maxiter), condition])
+
+    iteration()  # outside any capture: loads the kernels' modules
+    if device.is_cuda:
+        conditional = wp.is_conditional_graph_supported()
+        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            if conditional:
+                wp.capture_while(condition, iteration)
+            else:
+                iteration()
+        if conditional:
+            wp.capture_launch(capture.graph)
+        else:
+            while int(condition.numpy()[0]):
+                for _ in range(CHECK_EVERY):
+                    wp.capture_launch(capture.graph)
+    else:
+        wp.capture_while(condition, iteration)
+    s = state.numpy()
+    return CgResult(bool(s[STOP] == 1.0), bool(s[STOP] in (2.0, 3.0)), int(s[ITER]))
