@@ -1,12 +1,14 @@
-"""The device CG's matrix-vector product (physics/sparse_product.py) against scipy on a real Newton Hessian."""
+"""The device CG's matrix-vector product (physics/sparse_product.py) against scipy, and its projection of the fixed
+degrees of freedom (physics/linear.py) against warp.fem's, on a real Newton Hessian."""
 
 import numpy as np
 import trimesh
 import warp as wp
+import warp.fem as fem
 
 from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter
 from transtac_sim.physics.box_mesh import gel_block
-from transtac_sim.physics.linear import bsr_to_scipy
+from transtac_sim.physics.linear import _project_fixed_blocks, bsr_to_scipy
 from transtac_sim.physics.sparse_product import block_row_operator
 
 
@@ -45,3 +47,18 @@ def test_block_row_product_matches_scipy():
     block_row_operator(H).matvec(wp.array(x, dtype=wp.vec3d), z2, z2, 1.0, 0.0)
     np.testing.assert_allclose(z2.numpy().reshape(-1), A @ x.reshape(-1), rtol=1e-12,
                                atol=1e-12 * np.abs(A @ x.reshape(-1)).max())
+
+
+def test_fixed_projection_matches_warp_fem():
+    """(I - P) H (I - P) + P in place, block by block, equals warp.fem.project_linear_system's sparse products."""
+    H = _pressed_hessian()
+    fixed = np.random.default_rng(0).random((H.nrow, 3)) < 0.2  # components fixed at random, some nodes partly
+    blocks = np.zeros((H.nrow, 3, 3))
+    blocks[:, [0, 1, 2], [0, 1, 2]] = fixed
+    by_fem = wp.sparse.bsr_copy(H)
+    fem.project_linear_system(by_fem, wp.zeros(H.nrow, dtype=wp.vec3d), wp.sparse.bsr_diag(wp.array(blocks, dtype=wp.mat33d)),
+                              normalize_projector=False)
+    wp.launch(_project_fixed_blocks, dim=H.nrow, inputs=[H.offsets, H.row_counts, H.columns, H.values,
+                                                         wp.array(fixed.astype(np.float64), dtype=wp.vec3d)])
+    A, B = bsr_to_scipy(by_fem), bsr_to_scipy(H)
+    assert abs(A - B).max() <= 1e-14 * abs(A).max() and abs(A - bsr_to_scipy(_pressed_hessian())).max() > 0.0

@@ -14,12 +14,14 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
              p = z + (r . z)_new / (r . z) p
     until |r| <= tol (= max(rtol |b|, atol)) or ``maxiter`` iterations.
 
-It runs on the device like ``warp.optim.linear.cg``: one iteration's kernels are captured once per solve, and
-with conditional CUDA graphs (CUDA 12.4+) the loop itself is captured too (``wp.capture_while``), so the host
-waits only for the end; otherwise the captured iteration is launched ``CHECK_EVERY`` times between host reads.
-The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration) is one small float64 array, so the kernels of
-a stopped solve do nothing. Dot products are block-wise tile sums added atomically (round-off varies from run to
-run in the last bits, as the assembly's atomics already do).
+M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks) or none. It runs on the device like
+``warp.optim.linear.cg``: one iteration's kernels are captured once per solve, and with conditional CUDA graphs
+(CUDA 12.4+) the loop itself is captured too (``wp.capture_while``), so the host waits only for the end;
+otherwise the captured iteration is launched ``CHECK_EVERY`` times between host reads. An iteration is five
+launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
+entry), the update of p, and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration)
+is one small float64 array, so the kernels of a stopped solve do nothing. Dot products are block-wise tile sums
+added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 from warp.optim.linear import LinearOperator
+from warp.sparse import BsrMatrix
 
 CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
@@ -48,6 +51,46 @@ class CgResult:
 
 
 @wp.kernel(enable_backward=False)
+def _inverse_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                      blocks: wp.array(dtype=wp.mat33d), inverse: wp.array(dtype=wp.mat33d)):
+    row = wp.tid()
+    begin = offsets[row]
+    end = offsets[row + 1]
+    if row_counts:
+        end = begin + row_counts[row]
+    inverse[row] = wp.identity(n=3, dtype=wp.float64)  # a row without a diagonal block: not preconditioned
+    for k in range(begin, end):
+        if columns[k] == row:
+            inverse[row] = wp.inverse(blocks[k])
+
+
+@wp.kernel(enable_backward=False)
+def _apply_blocks(inverse: wp.array(dtype=wp.mat33d), x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d),
+                  z: wp.array(dtype=wp.vec3d), alpha: wp.float64, beta: wp.float64):
+    i = wp.tid()
+    value = alpha * (inverse[i] * x[i])
+    if beta != wp.float64(0.0):
+        value += beta * y[i]
+    z[i] = value
+
+
+class BlockJacobi(LinearOperator):
+    """The block-Jacobi preconditioner of a 3x3-block matrix: the inverses of its diagonal blocks
+    (``inverse_blocks``), usable as a ``warp.optim.linear`` operator too."""
+
+    def __init__(self, A: BsrMatrix):
+        self.inverse_blocks = wp.empty(A.nrow, dtype=wp.mat33d, device=A.device)
+        wp.launch(_inverse_diagonal, dim=A.nrow, device=A.device,
+                  inputs=[A.offsets, A.row_counts, A.columns, A.values, self.inverse_blocks])
+
+        def matvec(x, y, z, alpha, beta):
+            wp.launch(_apply_blocks, dim=A.nrow, device=A.device,
+                      inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta)])
+
+        super().__init__(A.shape, A.scalar_type, A.device, matvec)
+
+
+@wp.kernel(enable_backward=False)
 def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.array(dtype=wp.float64), slot: int,
          blocks: int):
     block, lane = wp.tid()
@@ -60,19 +103,34 @@ def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.arr
 
 
 @wp.kernel(enable_backward=False)
-def _zero(state: wp.array(dtype=wp.float64), first: int, count: int):
-    for k in range(count):
-        state[first + k] = wp.float64(0.0)
-
-
-@wp.kernel(enable_backward=False)
-def _step_x_r(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.vec3d),
-              x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d)):
-    i = wp.tid()
-    if state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0):
+def _step_precondition(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.vec3d),
+                       inverse: wp.array(dtype=wp.mat33d), precondition: int, x: wp.array(dtype=wp.vec3d),
+                       r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d), blocks: int):
+    """x += alpha p, r -= alpha q (alpha = r.z / p.q), z = M r, and the sums r . z -> RZ_NEW, |r|^2 -> RR."""
+    block, lane = wp.tid()
+    step = state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0)
+    alpha = wp.float64(0.0)
+    if step:
         alpha = state[RZ] / state[PQ]
-        x[i] = x[i] + alpha * p[i]
-        r[i] = r[i] - alpha * q[i]
+    rz = wp.float64(0.0)
+    rr = wp.float64(0.0)
+    for i in range(block * wp.block_dim() + lane, x.shape[0], blocks * wp.block_dim()):
+        ri = r[i]
+        if step:
+            x[i] = x[i] + alpha * p[i]
+            ri = ri - alpha * q[i]
+            r[i] = ri
+        zi = ri
+        if precondition != 0:
+            zi = inverse[i] * ri
+        z[i] = zi
+        rz += wp.dot(ri, zi)
+        rr += wp.dot(ri, ri)
+    rz_total = wp.tile_sum(wp.tile(rz))
+    rr_total = wp.tile_sum(wp.tile(rr))
+    if lane == 0:
+        wp.atomic_add(state, RZ_NEW, rz_total[0])
+        wp.atomic_add(state, RR, rr_total[0])
 
 
 @wp.kernel(enable_backward=False)
@@ -84,7 +142,8 @@ def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: w
 
 @wp.kernel(enable_backward=False)
 def _decide(state: wp.array(dtype=wp.float64), maxiter: int, condition: wp.array(dtype=wp.int32)):
-    """After an iteration's updates: the stop reason, the iteration count and whether to go on."""
+    """After an iteration's updates: the stop reason, the iteration count and whether to go on; clears the sums
+    for the next iteration."""
     if state[ACTIVE] != wp.float64(0.0):
         state[ITER] = state[ITER] + wp.float64(1.0)
         if not state[PQ] > wp.float64(0.0):
@@ -98,53 +157,45 @@ def _decide(state: wp.array(dtype=wp.float64), maxiter: int, condition: wp.array
         state[RZ] = state[RZ_NEW]
         if state[STOP] != wp.float64(0.0):
             state[ACTIVE] = wp.float64(0.0)
+    state[RZ_NEW] = wp.float64(0.0)
+    state[PQ] = wp.float64(0.0)
+    state[RR] = wp.float64(0.0)
     condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
 
 
 def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
-                M: LinearOperator | None = None, atol: float = 0.0) -> CgResult:
+                M: BlockJacobi | None = None, atol: float = 0.0) -> CgResult:
     """Solves A x = b from the given x (vec3d arrays, updated in place) to |b - A x| <= max(rtol |b|, atol),
     stopping early where A (or M) is found not to be positive definite (x then holds the last iterate)."""
     device = b.device
-    n = b.shape[0]
     r, z, p, q = (wp.empty_like(b) for _ in range(4))
     state = wp.zeros(8, dtype=wp.float64, device=device)
     condition = wp.zeros(1, dtype=wp.int32, device=device)
+    inverse = M.inverse_blocks if M is not None else wp.empty(0, dtype=wp.mat33d, device=device)
 
-    def dot(u, v, slot):
-        wp.launch_tiled(_dot, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device, inputs=[u, v, state, slot, DOT_BLOCKS])
+    def tiled(kernel, *inputs):
+        wp.launch_tiled(kernel, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device,
+                        inputs=[*inputs, DOT_BLOCKS])
 
-    def precondition():
-        if M is None:
-            wp.copy(z, r)
-        else:
-            M.matvec(r, z, z, 1.0, 0.0)
-
-    # r = b - A x, z = M r, p = z, and the state before the first iteration
+    # r = b - A x, z = M r, p = z, and the state before the first iteration (ACTIVE 0: no step, sums only)
     A.matvec(x, b, r, -1.0, 1.0)
-    precondition()
+    tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
     wp.copy(p, z)
-    dot(r, z, RZ)
-    dot(r, r, RR)
-    dot(b, b, TOL2)
+    tiled(_dot, b, b, state, TOL2)
     s = state.numpy()
     tol2 = max(rtol * rtol * s[TOL2], atol * atol)
     if s[RR] <= tol2:
         return CgResult(True, False, 0)
-    if not s[RZ] > 0.0:
+    if not s[RZ_NEW] > 0.0:
         return CgResult(False, True, 0)
-    state.assign(np.array([s[RZ], 0.0, 0.0, s[RR], tol2, 0.0, 0.0, 1.0]))
+    state.assign(np.array([s[RZ_NEW], 0.0, 0.0, 0.0, tol2, 0.0, 0.0, 1.0]))
     condition.fill_(1)
 
     def iteration():
-        wp.launch(_zero, dim=1, device=device, inputs=[state, RZ_NEW, 3])  # RZ_NEW, PQ, RR
         A.matvec(p, q, q, 1.0, 0.0)
-        dot(p, q, PQ)
-        wp.launch(_step_x_r, dim=n, device=device, inputs=[state, p, q, x, r])
-        precondition()
-        dot(r, z, RZ_NEW)
-        dot(r, r, RR)
-        wp.launch(_step_p, dim=n, device=device, inputs=[state, z, p])
+        tiled(_dot, p, q, state, PQ)
+        tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
+        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p])
         wp.launch(_decide, dim=1, device=device, inputs=[state, int(maxiter), condition])
 
     iteration()  # outside any capture: loads the kernels' modules

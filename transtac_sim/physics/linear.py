@@ -9,7 +9,7 @@
 - ``"cg"``: conjugate gradients with a block-Jacobi preconditioner on the solver's device (the GPU path), stopping
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
   returns None), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
-  projected out with ``warp.fem.project_linear_system``. Its relative tolerance is Newton's forcing term
+  projected out in place (``_project_fixed_blocks``). Its relative tolerance is Newton's forcing term
   (inexact Newton: loose far from the solution, tight near it). Where CG does not reach its tolerance in
   ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a sharp tip), that system is solved by
   the direct path instead (``cg_fallbacks`` counts them). The last converged system's matrix and
@@ -24,12 +24,39 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
-import warp.fem as fem
-from warp.optim.linear import preconditioner
 from warp.sparse import BsrMatrix
 
-from transtac_sim.physics.definite_cg import definite_cg
+from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
+
+
+@wp.kernel(enable_backward=False)
+def _project_fixed_blocks(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                          blocks: wp.array(dtype=wp.mat33d), fixed: wp.array(dtype=wp.vec3d)):
+    """H <- (I - P) H (I - P) + P in place, P the diagonal 0/1 mask of the fixed components (one thread per block
+    row): what ``warp.fem.project_linear_system`` computes with two sparse matrix products and three copies."""
+    row = wp.tid()
+    begin = offsets[row]
+    end = offsets[row + 1]
+    if row_counts:
+        end = begin + row_counts[row]
+    f = fixed[row]
+    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    keep = wp.diag(one - f)
+    for k in range(begin, end):
+        col = columns[k]
+        block = keep * blocks[k] * wp.diag(one - fixed[col])
+        if col == row:
+            block += wp.diag(f)
+        blocks[k] = block
+
+
+@wp.kernel(enable_backward=False)
+def _free_part(v: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
+    """(I - P) v: v with its fixed components set to 0."""
+    i = wp.tid()
+    f = fixed[i]
+    out[i] = wp.cw_mul(v[i], wp.vec3d(wp.float64(1.0) - f[0], wp.float64(1.0) - f[1], wp.float64(1.0) - f[2]))
 
 
 def bsr_to_scipy(A: BsrMatrix) -> sp.csr_matrix:
@@ -127,9 +154,7 @@ class LinearSolver:
         flat = fixed.reshape(-1)
         self._free = np.flatnonzero(~flat)
         self._node_count = fixed.shape[0]
-        blocks = np.zeros((fixed.shape[0], 3, 3))
-        blocks[:, [0, 1, 2], [0, 1, 2]] = fixed
-        self._projector = wp.sparse.bsr_diag(wp.array(blocks, dtype=wp.mat33d, device=device))
+        self._fixed = wp.array(fixed.astype(np.float64), dtype=wp.vec3d, device=device)  # 1 where fixed
         self.last_iterations = 0
         self.reuse_max_iterations = reuse_max_iterations
         self.reuse_rtol = reuse_rtol
@@ -244,10 +269,12 @@ class LinearSolver:
         H = wp.sparse.bsr_copy(parts[0])  # parts[0] is reused by the caller: project a copy
         for P in parts[1:]:
             wp.sparse.bsr_axpy(P, H)
-        b = wp.clone(rhs)
-        fem.project_linear_system(H, b, self._projector, normalize_projector=False)
+        wp.launch(_project_fixed_blocks, dim=H.nrow, device=self.device,
+                  inputs=[H.offsets, H.row_counts, H.columns, H.values, self._fixed])
+        b = wp.empty_like(rhs)
+        wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
         x = wp.zeros_like(b)
-        M = preconditioner(H, ptype="block_jacobi_direct")
+        M = BlockJacobi(H)
         converged, self.last_iterations = self._cg(H, M, b, x, rtol, self.cg_maxiter, exact_below)
         if not converged:
             return None
