@@ -190,3 +190,22 @@ def test_frictionless_press_takes_few_newton_iterations():
     one = direct.solve_frame([_lift(4.0 + 1e-3 - 0.3)])
     again = solver.solve_frame([_lift(4.0 + 1e-3 - 0.3)])  # the same pose: a hold frame
     np.testing.assert_allclose(again.forces_n[0, 2], one.forces_n[0, 2], rtol=1e-3)  # measured: 5e-5
+
+
+def test_carried_warm_start_shifts_an_affine_field_exactly():
+    """The slide's warm start u_prev(X - shift) (newton.py ``_carried``, a BVH lookup on the solver's device): for
+    an affine u_prev (exact in P2) it is A (X - shift) + c where X - shift lies in the gel, u_prev(X) where it does
+    not, and 0 on the fixed components."""
+    V, solver = _sphere_on_block(0.5)
+    X = solver._space.node_positions().numpy()
+    A = np.array([[0.01, -0.02, 0.03], [0.0, 0.015, -0.01], [0.02, 0.01, -0.04]])
+    c = np.array([0.001, -0.002, 0.003])
+    solver.u_prev.dof_values.assign(X @ A.T + c)
+    shift = np.array([0.8, -0.35, 0.0])
+    carried = solver._carried(shift).numpy()
+    Y = X - shift
+    inside = np.all((Y >= V.min(axis=0) - 1e-12) & (Y <= V.max(axis=0) + 1e-12), axis=1)
+    expected = np.where(inside[:, None], Y @ A.T + c, X @ A.T + c)
+    expected[solver._fixed_nodes] = 0.0
+    assert 0 < inside.sum() < len(X)
+    np.testing.assert_allclose(carried, expected, rtol=0.0, atol=1e-12)

@@ -51,7 +51,6 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 import warp.fem as fem
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 #: Inexact Newton (Eisenstat & Walker 1996): the device CG solves each Newton system to a relative residual
@@ -258,28 +257,20 @@ class NewtonSteps:
             yield self._carried(shift)
 
     def _carried(self, shift: np.ndarray) -> wp.array:
-        """Dof values of u_prev(X - shift) (u_prev itself at nodes whose X - shift is outside the gel)."""
-        if getattr(self, "_locator", None) is None:
-            V, T = self.vertices_mm, self.tets
-            M = np.stack([V[T[:, k]] - V[T[:, 0]] for k in (1, 2, 3)], axis=2)  # columns: edges from vertex 0
-            self._locator = (cKDTree(V[T].mean(axis=1)), np.linalg.inv(M), self._space.node_positions().numpy())
-        tree, M_inv, X = self._locator
-        Y = X - shift
-        _, near = tree.query(Y, k=min(16, len(self.tets)))
-        lam = np.einsum("nkij,nkj->nki", M_inv[near], Y[:, None, :] - self.vertices_mm[self.tets[near, 0]])
-        inside = (lam.min(axis=2) >= -1e-9) & (lam.sum(axis=2) <= 1.0 + 1e-9)
-        found = inside.any(axis=1)
-        pick = np.argmax(inside, axis=1)
-        rows = np.flatnonzero(found)
-        values = self.u_prev.dof_values.numpy().copy()
-        if rows.size:
-            cells = near[rows, pick[rows]].astype(np.int32)
-            coords = lam[rows, pick[rows]]
-            q = fem.PicQuadrature(self._cells, (wp.array(cells, dtype=int, device=self.device),
-                                                 wp.array(coords, dtype=wp.vec3d, device=self.device)))
-            out = wp.empty(rows.size, dtype=wp.vec3d, device=self.device)
-            fem.interpolate(_value_form, dest=out, at=q, fields={"u": self.u_prev})
-            values[rows] = out.numpy()
+        """Dof values of u_prev(X - shift) (u_prev itself at nodes whose X - shift is outside the gel, and 0 on the
+        fixed components), found on the device: each node's X - shift is looked up in the tet mesh's BVH
+        (``fem.lookup``; built on first use) and u_prev evaluated there."""
+        if self._geo.bvh_id(self.device) == 0:
+            self._geo.build_bvh(self.device)
+        if getattr(self, "_node_positions", None) is None:
+            self._node_positions = self._space.node_positions()
+        targets = wp.clone(self._node_positions)
+        fem.linalg.array_axpy(x=wp.full(len(targets), wp.vec3d(*shift), dtype=wp.vec3d, device=self.device), y=targets,
+                              alpha=-1.0)
+        out = wp.empty_like(self.u_prev.dof_values)
+        fem.interpolate(_carried_form, dest=out, at=self._cells, dim=len(targets), fields={"u": self.u_prev},
+                        values={"targets": targets, "kept": self.u_prev.dof_values, "tol": 1.0e-8})
+        values = out.numpy()
         values[self._fixed_nodes] = 0.0
         return wp.array(values, dtype=wp.vec3d, device=self.device)
 
@@ -304,5 +295,13 @@ class NewtonSteps:
 
 
 @fem.integrand
-def _value_form(s: fem.Sample, u: fem.Field):
-    return u(s)
+def _carried_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, targets: wp.array(dtype=wp.vec3d),
+                  kept: wp.array(dtype=wp.vec3d), tol: wp.float64):
+    """u at targets[i] where that point lies in the gel (within tol mm of where the lookup lands), else kept[i]."""
+    y = targets[s.qp_index]
+    found = fem.lookup(domain, y)
+    value = kept[s.qp_index]
+    if found.element_index != fem.NULL_ELEMENT_INDEX:
+        if wp.length(fem.position(domain, found) - y) <= tol:
+            value = u(found)
+    return value
