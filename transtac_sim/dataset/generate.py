@@ -21,6 +21,7 @@ from pathlib import Path
 from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset.coco import write_coco
 from transtac_sim.dataset.manifest import build_manifest, read_manifest, write_manifest
+from transtac_sim.executors import ray_tasks, start_ray
 from transtac_sim.writer.atomic import write_json
 
 
@@ -73,19 +74,12 @@ def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int, gpus_
     one, BENCHMARKS.md ``generate_train_random_gpu_spmv``), and a worker keeps its GPU, its CUDA context and its
     loaded kernels from one sequence to the next. Adds the Ray ids of the GPUs that solved sequences to
     ``gpus_used``."""
-    import ray
     from ray.util import ActorPool
 
-    if not ray.is_initialized():
-        ray.init(address=address, num_cpus=None if address else max(1, workers), include_dashboard=False,
-                 log_to_driver=False, ignore_reinit_error=True)
+    ray = start_ray(address, workers)
     gpus = int(ray.cluster_resources().get("GPU", 0))
     if not gpus:
-        remote = ray.remote(_run_task)
-        pending = [remote.remote(t) for t in tasks]
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            yield ray.get(ready[0])
+        yield from ray_tasks(_run_task, tasks, address, workers)
         return
     share = ray_gpu_share(gpus, workers)
     actor = ray.remote(num_gpus=share, num_cpus=0)(_SequenceWorker)

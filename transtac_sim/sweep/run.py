@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from transtac_sim.config import ConfigError, load_hardware
+from transtac_sim.executors import ray_tasks
 from transtac_sim.sweep.config import (
     LAYOUT_KEYS,
     PIPELINE_KEYS,
@@ -308,16 +309,7 @@ def read_result(root: Path, pkey: str) -> dict | None:
 
 def _map(fn, tasks: list, executor: str, workers: int, address: str | None) -> Iterator:
     if executor == "ray":
-        import ray
-
-        if not ray.is_initialized():
-            ray.init(address=address, num_cpus=None if address else max(1, workers), include_dashboard=False,
-                     log_to_driver=False, ignore_reinit_error=True)
-        remote = ray.remote(fn)
-        pending = [remote.remote(t) for t in tasks]
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            yield ray.get(ready[0])
+        yield from ray_tasks(fn, tasks, address, workers)
         return
     if workers <= 1:
         for t in tasks:
