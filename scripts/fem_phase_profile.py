@@ -177,11 +177,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
           f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
           f"({1000 * total / max(iterations, 1):.1f} ms per iteration)")
-    if not gpu_activity:
-        print(f"device solves stopped at non-positive curvature: {clock.not_definite}")
     if gpu_activity:
         print_gpu_activity(activity, total)
         return
+    print(f"device solves stopped at non-positive curvature: {clock.not_definite}")
     print("| phase | calls | s | ms per call | share |")
     print("|---|---|---|---|---|")
     for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):

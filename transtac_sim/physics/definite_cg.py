@@ -33,6 +33,8 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
+from transtac_sim.physics.sparse_product import block_row_range
+
 CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
@@ -40,7 +42,8 @@ DOT_THREADS = 256
 # the state array's slots
 RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE = (wp.constant(k) for k in range(8))
 # why it stopped (the STOP slot)
-CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in range(1, 5))
+_STOPS = (1.0, 2.0, 3.0, 4.0)
+CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in _STOPS)
 
 
 @dataclass(frozen=True)
@@ -54,12 +57,9 @@ class CgResult:
 def _inverse_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
                       blocks: wp.array(dtype=wp.mat33d), inverse: wp.array(dtype=wp.mat33d)):
     row = wp.tid()
-    begin = offsets[row]
-    end = offsets[row + 1]
-    if row_counts:
-        end = begin + row_counts[row]
+    blocks_of_row = block_row_range(offsets, row_counts, row)
     inverse[row] = wp.identity(n=3, dtype=wp.float64)  # a row without a diagonal block: not preconditioned
-    for k in range(begin, end):
+    for k in range(blocks_of_row[0], blocks_of_row[1]):
         if columns[k] == row:
             inverse[row] = wp.inverse(blocks[k])
 
@@ -215,4 +215,5 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     else:
         wp.capture_while(condition, iteration)
     s = state.numpy()
-    return CgResult(bool(s[STOP] == 1.0), bool(s[STOP] in (2.0, 3.0)), int(s[ITER]))
+    converged, not_definite, not_definite_m, _ = _STOPS
+    return CgResult(bool(s[STOP] == converged), bool(s[STOP] in (not_definite, not_definite_m)), int(s[ITER]))

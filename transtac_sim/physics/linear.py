@@ -27,7 +27,7 @@ import warp as wp
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
-from transtac_sim.physics.sparse_product import block_row_operator
+from transtac_sim.physics.sparse_product import block_row_operator, block_row_range
 
 
 @wp.kernel(enable_backward=False)
@@ -36,14 +36,11 @@ def _project_fixed_blocks(offsets: wp.array(dtype=int), row_counts: wp.array(dty
     """H <- (I - P) H (I - P) + P in place, P the diagonal 0/1 mask of the fixed components (one thread per block
     row): what ``warp.fem.project_linear_system`` computes with two sparse matrix products and three copies."""
     row = wp.tid()
-    begin = offsets[row]
-    end = offsets[row + 1]
-    if row_counts:
-        end = begin + row_counts[row]
+    blocks_of_row = block_row_range(offsets, row_counts, row)
     f = fixed[row]
     one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
     keep = wp.diag(one - f)
-    for k in range(begin, end):
+    for k in range(blocks_of_row[0], blocks_of_row[1]):
         col = columns[k]
         block = keep * blocks[k] * wp.diag(one - fixed[col])
         if col == row:

@@ -262,14 +262,10 @@ class NewtonSteps:
         (``fem.lookup``; built on first use) and u_prev evaluated there."""
         if self._geo.bvh_id(self.device) == 0:
             self._geo.build_bvh(self.device)
-        if getattr(self, "_node_positions", None) is None:
-            self._node_positions = self._space.node_positions()
-        targets = wp.clone(self._node_positions)
-        fem.linalg.array_axpy(x=wp.full(len(targets), wp.vec3d(*shift), dtype=wp.vec3d, device=self.device), y=targets,
-                              alpha=-1.0)
         out = wp.empty_like(self.u_prev.dof_values)
-        fem.interpolate(_carried_form, dest=out, at=self._cells, dim=len(targets), fields={"u": self.u_prev},
-                        values={"targets": targets, "kept": self.u_prev.dof_values, "tol": 1.0e-8})
+        fem.interpolate(_carried_form, dest=out, at=self._cells, dim=len(out), fields={"u": self.u_prev},
+                        values={"nodes": self._node_positions, "shift": wp.vec3d(*shift),
+                                "kept": self.u_prev.dof_values, "tol": 1.0e-8})
         values = out.numpy()
         values[self._fixed_nodes] = 0.0
         return wp.array(values, dtype=wp.vec3d, device=self.device)
@@ -295,10 +291,11 @@ class NewtonSteps:
 
 
 @fem.integrand
-def _carried_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, targets: wp.array(dtype=wp.vec3d),
-                  kept: wp.array(dtype=wp.vec3d), tol: wp.float64):
-    """u at targets[i] where that point lies in the gel (within tol mm of where the lookup lands), else kept[i]."""
-    y = targets[s.qp_index]
+def _carried_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, nodes: wp.array(dtype=wp.vec3d),
+                  shift: wp.vec3d, kept: wp.array(dtype=wp.vec3d), tol: wp.float64):
+    """u at nodes[i] - shift where that point lies in the gel (within tol mm of where the lookup lands), else
+    kept[i]."""
+    y = nodes[s.qp_index] - shift
     found = fem.lookup(domain, y)
     value = kept[s.qp_index]
     if found.element_index != fem.NULL_ELEMENT_INDEX:

@@ -95,6 +95,7 @@ class QuasiStaticSolver(NewtonSteps):
             self.u_prev = self._space.make_field()  # start of the current (sub)step
             self.u_lag = self._space.make_field()  # friction lag
             self._u_try = self._space.make_field()
+            self._node_positions = self._space.node_positions()  # (nodes,) vec3d, mm
             self._test = fem.make_test(self._space, domain=self._cells)
             self._trial = fem.make_trial(self._space, domain=self._cells)
             self._side_test = fem.make_test(self._space, domain=self._sides)
@@ -130,7 +131,7 @@ class QuasiStaticSolver(NewtonSteps):
     # -- set-up helpers -------------------------------------------------------------------------
     def _map_nodes(self, fixed):
         V, T = self.vertices_mm, self.tets
-        nodes = self._space.node_positions().numpy()
+        nodes = self._node_positions.numpy()
         tree = cKDTree(nodes)
         scale = np.ptp(V, axis=0).max()
         dist, node_of_vertex = tree.query(V)

@@ -22,6 +22,16 @@ from warp.sparse import BsrMatrix
 LANES = 32  # threads per block row: one warp
 
 
+@wp.func
+def block_row_range(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), row: int):
+    """(first, end) of block row ``row``'s blocks in a BSR matrix's ``columns`` and ``values``."""
+    begin = offsets[row]
+    end = offsets[row + 1]
+    if row_counts:
+        end = begin + row_counts[row]
+    return wp.vec2i(begin, end)
+
+
 @wp.kernel(enable_backward=False)
 def _block_row_product(
     offsets: wp.array(dtype=int),
@@ -35,12 +45,9 @@ def _block_row_product(
     z: wp.array(dtype=wp.vec3d),
 ):
     row, lane = wp.tid()
-    begin = offsets[row]
-    end = offsets[row + 1]
-    if row_counts:
-        end = begin + row_counts[row]
+    blocks_of_row = block_row_range(offsets, row_counts, row)
     partial = wp.vec3d()
-    for k in range(begin + lane, end, wp.block_dim()):
+    for k in range(blocks_of_row[0] + lane, blocks_of_row[1], wp.block_dim()):
         partial += blocks[k] * x[columns[k]]
     total = wp.tile_sum(wp.tile(partial, preserve_type=True))
     if lane == 0:
