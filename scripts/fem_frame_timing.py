@@ -141,13 +141,17 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          benchmarks: bool = typer.Option(False, help=f"store the run in BENCHMARKS.md's {SECTION} section"),
          sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
          max_newton_iterations: int | None = typer.Option(None, min=1, help="replace SolverSettings' "
-                                                          "max_newton_iterations (per sub-step)")) -> None:
-    if max_newton_iterations is not None:
+                                                          "max_newton_iterations (per sub-step)"),
+         friction_lag_iterations: int | None = typer.Option(None, min=0, help="replace SolverSettings' "
+                                                            "friction_lag_iterations (per step)")) -> None:
+    overrides = {k: v for k, v in (("max_newton_iterations", max_newton_iterations),
+                                   ("friction_lag_iterations", friction_lag_iterations)) if v is not None}
+    if overrides:
         import functools
 
         from transtac_sim import physics  # simulation.py imports SolverSettings from here when it solves
 
-        physics.SolverSettings = functools.partial(physics.SolverSettings, max_newton_iterations=max_newton_iterations)
+        physics.SolverSettings = functools.partial(physics.SolverSettings, **overrides)
     result = run(scene, degree, frames, trajectory_from, sequence)
     if benchmarks:
         from benchmarks_md import update_section
