@@ -24,6 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
+from threadpoolctl import ThreadpoolController
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
@@ -71,26 +72,34 @@ class _Factor:
         self.solve, self.shape, self.kind = solve, shape, kind
 
 
-def _factorise(A: sp.csc_matrix, definite: bool = False) -> _Factor | None:
+def _cholmod():
+    """scikit-sparse's CHOLMOD module, or None where it is not installed (e.g. the GPU bundle)."""
+    try:
+        from sksparse import cholmod
+    except ImportError:
+        return None
+    return cholmod
+
+
+def _factorise(A: sp.csc_matrix, definite: bool = False, symbolic=None) -> _Factor | None:
     """Factorises the (symmetric, normally positive definite) free-dof Hessian; with ``definite``, None where
     CHOLMOD finds it is not positive definite (the caller then tries a Hessian that is).
 
     CHOLMOD's supernodal Cholesky (scikit-sparse) when installed: for P2 meshes of 10^4-10^5 dofs it is an
-    order of magnitude faster than SuperLU. Otherwise, or if the matrix is not positive definite, SuperLU:
-    first without partial pivoting (DiagPivotThresh 0, keeps the symmetric minimum-degree ordering: about
-    half the fill of threshold pivoting), then, if that breaks down (a tiny pivot of an indefinite matrix:
-    non-finite or inaccurate result), with pivoting."""
-    try:
-        from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
-
+    order of magnitude faster than SuperLU. ``symbolic``: a CHOLMOD analysis (fill-reducing ordering and the
+    factor's structure) of a pattern that contains A's; only the numeric factorisation is then done (the
+    ordering was half of each factorisation: 186 of 350 ms on the tiny press fixture's 13.6k dofs). Otherwise, or
+    if the matrix is not positive definite, SuperLU: first without partial pivoting (DiagPivotThresh 0, keeps the
+    symmetric minimum-degree ordering: about half the fill of threshold pivoting), then, if that breaks down (a
+    tiny pivot of an indefinite matrix: non-finite or inaccurate result), with pivoting."""
+    cholmod = _cholmod()
+    if cholmod is not None:
         try:
-            factor = cholesky(A)
+            factor = symbolic.cholesky(A) if symbolic is not None else cholmod.cholesky(A)
             return _Factor(factor.solve_A, A.shape, "cholmod")
-        except CholmodNotPositiveDefiniteError:
+        except cholmod.CholmodNotPositiveDefiniteError:
             if definite:
                 return None
-    except ImportError:  # e.g. the GPU bundle has no CHOLMOD
-        pass
     b = A @ np.ones(A.shape[0])
     try:
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
@@ -101,6 +110,13 @@ def _factorise(A: sp.csc_matrix, definite: bool = False) -> _Factor | None:
         pass
     lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
     return _Factor(lu.solve, A.shape, "superlu-pivoting")
+
+
+def _pattern(A: sp.spmatrix) -> sp.csc_matrix:
+    """A's stored entries (explicit zeros too) as a matrix of ones."""
+    P = sp.csc_matrix(A, copy=True)
+    P.data[:] = 1.0
+    return P
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -161,6 +177,9 @@ class LinearSolver:
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
         self._static: tuple[int, sp.csr_matrix] | None = None
+        self._analysed: tuple[sp.csc_matrix, object] | None = None  # (pattern, CHOLMOD analysis of it)
+        # the host path's BLAS (numpy's, scipy's and CHOLMOD's OpenBLAS) held to one thread: see ``_solve_direct``
+        self._blas: ThreadpoolController | None = None  # made on the first host solve
         self._converged_iterations = 0  # CG iterations of the last converged device solve
         self._last_cg: tuple | None = None  # the last converged device system's (matrix, preconditioner)
 
@@ -184,14 +203,23 @@ class LinearSolver:
         return self._solve_direct(parts, rhs, definite)
 
     def _solve_direct(self, parts: list[BsrMatrix], rhs: wp.array, definite: bool = False) -> wp.array | None:
+        """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,
+        scipy's, CHOLMOD's) spin-wait against each other and the next Warp kernel on few cores; on the 2-core CPU
+        (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
+        against 38 ms on one thread, and the process 10 s of system time in 15 s."""
         if self._static is None or self._static[0] != id(parts[0]):  # parts[0] is reused: convert it once
             self._static = (id(parts[0]), bsr_to_scipy(parts[0]))
         A = self._static[1]
         for P in parts[1:]:
             A = A + bsr_to_scipy(P)
+        A.eliminate_zeros()  # blocks of structural zeros (a part assembled into a kept pattern, solver.py)
         A = A[self._free][:, self._free].tocsc()
         b = rhs.numpy().reshape(-1)[self._free]
-        x_free = self._solve_free(A, b, definite)
+        if self._blas is None:
+            _cholmod()  # loads CHOLMOD's OpenBLAS first, so that the controller finds it
+            self._blas = ThreadpoolController()
+        with self._blas.limit(limits=1, user_api="blas"):
+            x_free = self._solve_free(A, b, definite)
         if x_free is None:
             return None
         self._last_free = A
@@ -205,13 +233,31 @@ class LinearSolver:
             if x is not None:
                 self.last_iterations = iterations
                 return x
-        factor = _factorise(A, definite)
+        factor = _factorise(A, definite, self._analysis(A))
         self.factorisations += 1
         if factor is None:
             return None
         self._lu = factor
         self.last_iterations = 1
         return self._lu.solve(b)
+
+    def _analysis(self, A: sp.csc_matrix):
+        """CHOLMOD's symbolic analysis of a pattern that contains A's (None without CHOLMOD). Made for the first
+        matrix together with the elements' whole pattern (the constant deviatoric part: every other part's entries
+        lie within it), and again, on the union, only if a later matrix has an entry outside it."""
+        cholmod = _cholmod()
+        if cholmod is None:
+            return None
+        pattern = _pattern(A)
+        if self._analysed is None:
+            pattern = _pattern(pattern + _pattern(self._static[1][self._free][:, self._free]))
+        else:
+            union = self._analysed[0] + pattern
+            if union.nnz == self._analysed[0].nnz:
+                return self._analysed[1]
+            pattern = _pattern(union)
+        self._analysed = (pattern, cholmod.analyze(pattern))
+        return self._analysed[1]
 
     def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:
         """The last system's matrix solved for another right-hand side ``rhs`` (nodes, 3; 0 on the fixed
@@ -224,7 +270,8 @@ class LinearSolver:
             return self._solve_last_cg(rhs, rtol, exact_below)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:
             return None
-        x, _ = _pcg(self._last_free, rhs.reshape(-1)[self._free], self._lu.solve, rtol, self.reuse_max_iterations)
+        with self._blas.limit(limits=1, user_api="blas"):
+            x, _ = _pcg(self._last_free, rhs.reshape(-1)[self._free], self._lu.solve, rtol, self.reuse_max_iterations)
         if x is None:
             return None
         out = np.zeros(3 * self._node_count)

@@ -4,8 +4,8 @@ Each frame moves the indenters from the previous poses to new ones. The solver m
 E(u) = E_el(u) + E_contact(u) (see elasticity.py, contact.py) over the displacement u (mm) of a P1 or P2
 tet mesh, with u = 0 on the fixed components (default: every vertex with z <= tol, the bonded face).
 
-This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs), the assembly of E, its
-gradient and Hessian, and the frame API. The Newton iteration of one (sub)step is in newton.py: warm start
+This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs) and the frame API. The assembly of E,
+its gradient and Hessian is in assembly.py. The Newton iteration of one (sub)step is in newton.py: warm start
 from the extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a
 line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
 A step that does not converge or leaves a penetration above ``penetration_tol_mm`` is retried in halves of
@@ -25,7 +25,8 @@ import warp.fem as fem
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation, Slerp
 
-from transtac_sim.physics import contact, elasticity
+from transtac_sim.physics import contact
+from transtac_sim.physics.assembly import Assembly
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
@@ -47,7 +48,7 @@ def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return P
 
 
-class QuasiStaticSolver(NewtonSteps):
+class QuasiStaticSolver(Assembly, NewtonSteps):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
@@ -78,13 +79,14 @@ class QuasiStaticSolver(NewtonSteps):
         self._flipped = vol < 0
         T[self._flipped] = T[self._flipped][:, [0, 2, 1, 3]]
         self.vertices_mm, self.tets = V, T
+        fixed_vertices = self._fixed_vertex_mask(fixed)
         self._params_np = neo_hookean_parameters(materials, material_index, len(T))
 
         with wp.ScopedDevice(self.device):
             self._geo = fem.Tetmesh(wp.array(T, dtype=int), wp.array(V, dtype=wp.vec3d))
             self._space = fem.make_polynomial_space(self._geo, degree=settings.degree, dtype=wp.vec3d)
             self._cells = fem.Cells(self._geo)
-            self._sides = fem.BoundarySides(self._geo)
+            self._sides = self._touchable_sides(fixed_vertices)
             self._q_dev = fem.RegularQuadrature(self._cells, order=2 * (settings.degree - 1))
             self._q_vol = fem.RegularQuadrature(self._cells, order=0)
             self._q_det = fem.RegularQuadrature(self._cells, order=2)
@@ -114,7 +116,7 @@ class QuasiStaticSolver(NewtonSteps):
                 setattr(self._contact_state, name, wp.zeros(n_contact, dtype=dtype))
             self._contact_state.traction = wp.zeros(self._q_contact.total_point_count(), dtype=wp.vec3d)
 
-        self._node_of_vertex, fixed_nodes = self._map_nodes(fixed)
+        self._node_of_vertex, fixed_nodes = self._map_nodes(fixed_vertices)
         method = settings.linear_solver
         if method == "auto":
             method = "cg" if self.device.is_cuda else "direct"
@@ -124,19 +126,16 @@ class QuasiStaticSolver(NewtonSteps):
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
         self._poses: list[np.ndarray] | None = None
+        self._H_dev = None  # the Hessian's constant deviatoric part (assembly.py)
+        self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._increment: tuple[wp.array, np.ndarray, float] | None = None  # last (du, pose step, penetration)
         self.stats: Counter = Counter()  # per frame: backtracks, stiffness_raises, warm_starts, lag_updates
         self.frame_index = 0
 
     # -- set-up helpers -------------------------------------------------------------------------
-    def _map_nodes(self, fixed):
-        V, T = self.vertices_mm, self.tets
-        nodes = self._node_positions.numpy()
-        tree = cKDTree(nodes)
-        scale = np.ptp(V, axis=0).max()
-        dist, node_of_vertex = tree.query(V)
-        if np.max(dist) > 1e-9 * scale:
-            raise RuntimeError("could not match mesh vertices to FE nodes")
+    def _fixed_vertex_mask(self, fixed) -> np.ndarray:
+        """The (N,3) per-component Dirichlet mask of the vertices: ``fixed`` as given, default z <= fixed_z_tol_mm."""
+        V = self.vertices_mm
         if fixed is None:
             fixed = V[:, 2] <= self.settings.fixed_z_tol_mm
         fixed = np.asarray(fixed, dtype=bool)
@@ -144,6 +143,30 @@ class QuasiStaticSolver(NewtonSteps):
             fixed = np.repeat(fixed[:, None], 3, axis=1)
         if fixed.shape != V.shape:
             raise ValueError(f"fixed mask must be (N,) or (N,3), got {fixed.shape}")
+        return fixed
+
+    def _touchable_sides(self, fixed_vertices: np.ndarray) -> fem.GeometryDomain:
+        """The boundary sides contact is integrated over: all but those whose three vertices are fixed in every
+        component (the bonded face: it cannot move, and no indenter reaches it through the gel). On a slab that is
+        about half the boundary, and every contact kernel (a mesh query per quadrature point) does half the work."""
+        sides = fem.BoundarySides(self._geo)
+        # boundary side i is face _boundary_face_indices[i] of the Tetmesh (what its boundary_side_index returns)
+        faces = self._geo.face_vertex_indices.numpy()[self._geo._boundary_face_indices.numpy()]
+        held = fixed_vertices.all(axis=1)[faces].all(axis=1)
+        if not held.any():
+            return sides
+        return fem.Subdomain(sides, element_indices=wp.array(np.flatnonzero(~held).astype(np.int32), dtype=int))
+
+    def _map_nodes(self, fixed: np.ndarray):
+        """(node of each vertex, the (nodes, 3) Dirichlet mask of the FE nodes) from the vertices' mask ``fixed``;
+        a P2 edge node is fixed where both its vertices are."""
+        V, T = self.vertices_mm, self.tets
+        nodes = self._node_positions.numpy()
+        tree = cKDTree(nodes)
+        scale = np.ptp(V, axis=0).max()
+        dist, node_of_vertex = tree.query(V)
+        if np.max(dist) > 1e-9 * scale:
+            raise RuntimeError("could not match mesh vertices to FE nodes")
         fixed_nodes = np.zeros((len(nodes), 3), dtype=bool)
         fixed_nodes[node_of_vertex] = fixed
         if self.settings.degree == 2:
@@ -191,106 +214,6 @@ class QuasiStaticSolver(NewtonSteps):
         s.stiffness = self.contact_stiffness
         s.slip_eps = self.settings.slip_eps_mm
         return s
-
-    # -- energy, gradient, Hessian ----------------------------------------------------------------
-    def _contact_fields(self, u):
-        return {"u": u.trace(), "u_prev": self.u_prev.trace()}
-
-    def _contact_values(self, ind) -> dict:
-        return {"ind": ind, "st": self._contact_state}
-
-    def _update_lag(self, ind) -> None:
-        """Friction's lagged normal pressure and tangent plane, from u_lag."""
-        if ind.count:
-            fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
-                            values=self._contact_values(ind))
-
-    def _barrier_values(self) -> dict:
-        return {"params": self._params, "stiffness": self.settings.barrier_stiffness,
-                "j_hat": self.settings.barrier_det_f}
-
-    def _barrier_energy(self, u) -> float:
-        """The inversion barrier's energy (elasticity.py) at the 4 check points of each tet; 0 where it is off."""
-        if self.settings.barrier_det_f <= 0.0:
-            return 0.0
-        return float(fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": u},
-                                   values=self._barrier_values()))
-
-    def _energy(self, u, ind) -> float:
-        vals = {"params": self._params}
-        e = fem.integrate(elasticity.deviatoric_energy_form, quadrature=self._q_dev, fields={"u": u}, values=vals)
-        e += fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals)
-        e += self._barrier_energy(u)
-        if ind.count:
-            e += fem.integrate(
-                contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
-                values=self._contact_values(ind),
-            )
-        return float(e)
-
-    def _gradient(self, ind) -> wp.array:
-        """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""
-        vals = {"params": self._params}
-        f = {"u": self.u, "v": self._test}
-        g = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev, fields=f, values=vals,
-                          output_dtype=wp.vec3d)
-        fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
-                      output=g, add=True)
-        if self.settings.barrier_det_f > 0.0:
-            fem.integrate(elasticity.barrier_gradient_form, quadrature=self._q_det, fields=f,
-                          values=self._barrier_values(), output=g, add=True)
-        if ind.count:
-            fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
-                            values=self._contact_values(ind))
-            fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
-                          values={"st": self._contact_state}, output=g, add=True)
-        return g
-
-    def _hessian(self, ind, geometric: float, clamp: bool = True):
-        """The Hessian as a list of BSR matrices whose sum it is (the linear solver adds them up); ``geometric``
-        and ``clamp`` select the volumetric term's geometric part (elasticity.py).
-
-        The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and reused."""
-        vals = {"params": self._params}
-        f = {"du": self._trial, "v": self._test}
-        if getattr(self, "_H_dev", None) is None:
-            self._H_dev = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f,
-                                        values=vals, output_dtype=wp.float64)
-        parts = [self._H_dev]
-        qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
-        fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
-                        values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
-        parts.append(fem.integrate(elasticity.volumetric_hessian_form, quadrature=self._q_vol, fields=f,
-                                   values=vals | qp, output_dtype=wp.float64))
-        if self._barrier_energy(self.u) > 0.0:  # only where some det F is below the barrier's threshold
-            qp = {"F_qp": self._F_det, "b_qp": self._b_det}
-            fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
-                            values=self._barrier_values() | qp | {"geometric": geometric, "clamp": int(clamp)})
-            parts.append(fem.integrate(elasticity.barrier_hessian_form, quadrature=self._q_det, fields=f,
-                                       values=qp, output_dtype=wp.float64))
-        if ind.count:
-            fields = {"du": self._side_trial, "v": self._side_test}
-            parts.append(fem.integrate(contact.contact_hessian_form, quadrature=self._q_contact, fields=fields,
-                                       values=self._contact_values(ind), output_dtype=wp.float64))
-        return parts
-
-    def _free_norm(self, g: wp.array) -> float:
-        a = g.numpy()
-        a[self._fixed_nodes] = 0.0
-        return float(np.linalg.norm(a))
-
-    def _min_det(self, u) -> float:
-        J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
-        fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
-        return float(np.min(J.numpy()))
-
-    def _max_penetration(self, ind) -> float:
-        if not ind.count:
-            return 0.0
-        pen = wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device)
-        fem.interpolate(contact.penetration_form, dest=pen, at=self._q_contact, fields={"u": self.u.trace()},
-                        values={"ind": ind})
-        return float(np.max(pen.numpy()))
 
     # -- public API -------------------------------------------------------------------------------
     def start(self, poses: list[np.ndarray]) -> None:

@@ -1,0 +1,137 @@
+"""The energy E(u) of solver.py, its gradient and Hessian (Warp FEM assembly), as a mixin of ``QuasiStaticSolver``
+(which provides the spaces, quadratures, fields and contact state).
+
+E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the displacement (mm), E in N mm:
+
+- the deviatoric term's Hessian does not depend on u: it is assembled once;
+- the volumetric, barrier and contact Hessians are assembled into kept matrices whose sparsity does not change
+  (``_assemble``: warp.fem's mapped construction, values only after the first assembly);
+- the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
+- contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+import warp.fem as fem
+
+from transtac_sim.physics import contact, elasticity
+
+
+class Assembly:
+    """Energy, gradient and Hessian for ``QuasiStaticSolver``."""
+
+    def _contact_fields(self, u):
+        return {"u": u.trace(), "u_prev": self.u_prev.trace()}
+
+    def _contact_values(self, ind) -> dict:
+        return {"ind": ind, "st": self._contact_state}
+
+    def _update_lag(self, ind) -> None:
+        """Friction's lagged normal pressure and tangent plane, from u_lag."""
+        if ind.count:
+            fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
+                            values=self._contact_values(ind))
+
+    def _barrier_values(self) -> dict:
+        return {"params": self._params, "stiffness": self.settings.barrier_stiffness,
+                "j_hat": self.settings.barrier_det_f}
+
+    def _barrier_energy(self, u) -> float:
+        """The inversion barrier's energy (elasticity.py) at the 4 check points of each tet; 0 where it is off."""
+        if self.settings.barrier_det_f <= 0.0:
+            return 0.0
+        return float(fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": u},
+                                   values=self._barrier_values()))
+
+    def _energy(self, u, ind) -> float:
+        vals = {"params": self._params}
+        e = fem.integrate(elasticity.deviatoric_energy_form, quadrature=self._q_dev, fields={"u": u}, values=vals)
+        e += fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals)
+        e += self._barrier_energy(u)
+        if ind.count:
+            e += fem.integrate(
+                contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
+                values=self._contact_values(ind),
+            )
+        return float(e)
+
+    def _gradient(self, ind) -> wp.array:
+        """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""
+        vals = {"params": self._params}
+        f = {"u": self.u, "v": self._test}
+        g = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev, fields=f, values=vals,
+                          output_dtype=wp.vec3d)
+        fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
+                      output=g, add=True)
+        if self._barrier_energy(self.u) > 0.0:  # 0 where every det F is above the threshold (the usual case)
+            fem.integrate(elasticity.barrier_gradient_form, quadrature=self._q_det, fields=f,
+                          values=self._barrier_values(), output=g, add=True)
+        if ind.count:
+            fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
+                            values=self._contact_values(ind))
+            fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
+                          values={"st": self._contact_state}, output=g, add=True)
+        return g
+
+    def _hessian(self, ind, geometric: float, clamp: bool = True):
+        """The Hessian as a list of BSR matrices whose sum it is (the linear solver adds them up); ``geometric``
+        and ``clamp`` select the volumetric term's geometric part (elasticity.py).
+
+        The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and reused."""
+        vals = {"params": self._params}
+        f = {"du": self._trial, "v": self._test}
+        if self._H_dev is None:
+            self._H_dev = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f,
+                                        values=vals, output_dtype=wp.float64)
+        parts = [self._H_dev]
+        qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
+        fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
+                        values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
+        parts.append(self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f, vals | qp))
+        if self._barrier_energy(self.u) > 0.0:  # only where some det F is below the barrier's threshold
+            qp = {"F_qp": self._F_det, "b_qp": self._b_det}
+            fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
+                            values=self._barrier_values() | qp | {"geometric": geometric, "clamp": int(clamp)})
+            parts.append(self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, qp))
+        if ind.count:
+            fields = {"du": self._side_trial, "v": self._side_test}
+            parts.append(self._assemble("contact", contact.contact_hessian_form, self._q_contact, fields,
+                                        self._contact_values(ind)))
+        return parts
+
+    def _assemble(self, name: str, form, quadrature, fields: dict, values: dict):
+        """A Hessian part, assembled into the same matrix each time (``self._H_parts[name]``). Its sparsity does not
+        change between Newton iterations, so after the first assembly warp.fem's mapped construction skips the
+        topology (the sort of every element's triplets) and scatters values only: atomically on the CPU (serial,
+        deterministic; 1.7x faster there), through the kept triplet-to-block map on a GPU (deterministic order)."""
+        H = self._H_parts.get(name)
+        construction = "mapped" if self.device.is_cuda else "mapped_atomic"
+        if H is None:
+            H = fem.integrate(form, quadrature=quadrature, fields=fields, values=values, output_dtype=wp.float64,
+                              bsr_options={"construction": construction, "capacity": "auto"})
+            H.nnz_sync()
+            self._H_parts[name] = H
+        else:
+            fem.integrate(form, quadrature=quadrature, fields=fields, values=values, output=H,
+                          bsr_options={"construction": construction, "capacity": "reuse"})
+        return H
+
+    def _free_norm(self, g: wp.array) -> float:
+        a = g.numpy()
+        a[self._fixed_nodes] = 0.0
+        return float(np.linalg.norm(a))
+
+    def _min_det(self, u) -> float:
+        J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
+        fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
+        return float(np.min(J.numpy()))
+
+    def _max_penetration(self, ind) -> float:
+        if not ind.count:
+            return 0.0
+        pen = wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device)
+        fem.interpolate(contact.penetration_form, dest=pen, at=self._q_contact, fields={"u": self.u.trace()},
+                        values={"ind": ind})
+        return float(np.max(pen.numpy()))
