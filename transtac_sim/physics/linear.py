@@ -10,7 +10,10 @@
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
   returns None), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
   projected out in place (``_project_fixed_blocks``). Its relative tolerance is Newton's forcing term
-  (inexact Newton: loose far from the solution, tight near it). Where CG does not reach its tolerance in
+  (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` is a relative residual
+  of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
+  press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
+  forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. Where CG does not reach its tolerance in
   ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a sharp tip), that system is solved by
   the direct path instead (``cg_fallbacks`` counts them). The last converged system's matrix and
   preconditioner are kept for ``solve_last``. Block-Jacobi because it is the cheapest per solve here: Warp's
@@ -156,7 +159,7 @@ def _pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int) -> tuple
 class LinearSolver:
     """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
 
-    def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-8, cg_maxiter: int = 20000,
+    def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-4, cg_maxiter: int = 20000,
                  reuse_max_iterations: int = 20, reuse_rtol: float = 1.0e-6):
         if method not in ("direct", "cg"):
             raise ValueError(f"unknown linear solver {method!r}")

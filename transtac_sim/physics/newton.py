@@ -34,8 +34,8 @@ Issue 12, second pass (scripts/fem_frame_timing.py; scripts/fem_stability.py's s
 
 Issue 12, third pass, the device path (scripts/fem_phase_profile.py; BENCHMARKS.md ``fem_newton_variants_gpu``):
 CG was 80 % of a press-and-slide frame on an H100, 500 iterations per Newton system at its 1e-8 tolerance.
-Newton's systems are now solved inexactly (``FORCING_MAX``; tightened to 1e-8 once the step is small enough to
-decide convergence), and the step estimate and early lag moves that the host path had (``solve_last``) use
+Newton's systems are now solved inexactly (``FORCING_MAX``; tightened to ``LinearSolver.cg_tol``, linear.py, once
+the step is small enough to decide convergence), and the step estimate and early lag moves that the host path had (``solve_last``) use
 the last device system: 25 CG iterations per solve instead of 500, 1.4x faster frames.
 
 Issue 12, fourth pass (BENCHMARKS.md ``fem_definite_cg_gpu``): the device path took the clamped Hessian always,
