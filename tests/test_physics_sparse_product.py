@@ -26,11 +26,7 @@ def _pressed_hessian():
     solver.solve_frame([Q])
     ind = solver._indenter_struct([Q], [Q])
     solver._gradient(ind)  # stores the contact state the Hessian uses
-    parts = solver._hessian(ind, 1.0, True)
-    H = wp.sparse.bsr_copy(parts[0])
-    for part in parts[1:]:
-        wp.sparse.bsr_axpy(part, H)
-    return H
+    return wp.sparse.bsr_copy(solver._hessian(ind, 1.0, True))
 
 
 def test_block_row_product_matches_scipy():
@@ -62,3 +58,27 @@ def test_fixed_projection_matches_warp_fem():
                                                          wp.array(fixed.astype(np.float64), dtype=wp.vec3d)])
     A, B = bsr_to_scipy(by_fem), bsr_to_scipy(H)
     assert abs(A - B).max() <= 1e-14 * abs(A).max() and abs(A - bsr_to_scipy(_pressed_hessian())).max() > 0.0
+
+
+def test_summed_hessian_equals_the_sum_of_its_parts():
+    """assembly.py adds each Hessian part into one kept matrix through precomputed block places: the result equals
+    scipy's sum of the parts (deviatoric, volumetric, contact with friction), and a second assembly at another state
+    overwrites the first instead of adding to it."""
+    V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
+    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])
+    P = np.eye(4)
+    P[2, 3] = 4.0 + 1e-3
+    solver.start([P])
+    Q = P.copy()
+    Q[2, 3] = 4.0 - 0.3
+    solver.solve_frame([Q])
+    ind = solver._indenter_struct([Q], [Q])
+    solver._gradient(ind)
+    first = bsr_to_scipy(solver._hessian(ind, 1.0, False))
+    H = bsr_to_scipy(solver._hessian(ind, 1.0, False))
+    parts = [bsr_to_scipy(solver._H_dev)] + [bsr_to_scipy(M) for M in solver._H_parts.values()]
+    assert set(solver._H_parts) >= {"volumetric", "contact"} and bsr_to_scipy(solver._H_parts["contact"]).nnz > 0
+    expected = sum(parts[1:], parts[0])
+    assert abs(H - expected).max() <= 1e-13 * abs(expected).max()
+    assert abs(first - H).max() <= 1e-13 * abs(expected).max()  # not accumulated over the two calls

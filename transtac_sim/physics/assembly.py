@@ -5,7 +5,8 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 
 - the deviatoric term's Hessian does not depend on u: it is assembled once;
 - the volumetric, barrier and contact Hessians are assembled into kept matrices whose sparsity does not change
-  (``_assemble``: warp.fem's mapped construction, values only after the first assembly);
+  (``_assemble``: warp.fem's mapped construction, values only after the first assembly), and added into one kept
+  matrix with the deviatoric part's sparsity (``_hessian``), the one the linear solver receives;
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
 - contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``).
 """
@@ -15,8 +16,16 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 import warp.fem as fem
+from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
+
+
+@wp.kernel(enable_backward=False)
+def _add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), total: wp.array(dtype=wp.mat33d)):
+    """total[slots[k]] += part[k]: a part's blocks added at their places in the sum (each place once per part)."""
+    k = wp.tid()
+    total[slots[k]] = total[slots[k]] + part[k]
 
 
 class Assembly:
@@ -75,33 +84,46 @@ class Assembly:
                           values={"st": self._contact_state}, output=g, add=True)
         return g
 
-    def _hessian(self, ind, geometric: float, clamp: bool = True):
-        """The Hessian as a list of BSR matrices whose sum it is (the linear solver adds them up); ``geometric``
-        and ``clamp`` select the volumetric term's geometric part (elasticity.py).
+    def _hessian(self, ind, geometric: float, clamp: bool = True) -> BsrMatrix:
+        """The Hessian at self.u, summed into one kept matrix with the elements' whole sparsity (``self._H``: the
+        linear solver may change it in place; the next call overwrites it); ``geometric`` and ``clamp`` select the
+        volumetric term's geometric part (elasticity.py).
 
-        The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and reused."""
+        The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and is the sum's start;
+        each other part is added through its blocks' places in the sum (``_sum_slots``), one launch per part instead
+        of a sparse matrix sum."""
         vals = {"params": self._params}
         f = {"du": self._trial, "v": self._test}
         if self._H_dev is None:
+            # with the mapped construction, as the other parts: every element's node pairs are blocks, none pruned
+            # where it is zero (the default construction drops such blocks, e.g. on an axis-aligned mesh)
             self._H_dev = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev, fields=f,
-                                        values=vals, output_dtype=wp.float64)
-        parts = [self._H_dev]
+                                        values=vals, output_dtype=wp.float64,
+                                        bsr_options={"construction": "mapped", "capacity": "auto"})
+            self._H_dev.nnz_sync()
+            self._H = wp.sparse.bsr_copy(self._H_dev)
+        parts = {}
         qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
         fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
                         values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
-        parts.append(self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f, vals | qp))
+        parts["volumetric"] = self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f, vals | qp)
         if self._barrier_energy(self.u) > 0.0:  # only where some det F is below the barrier's threshold
             qp = {"F_qp": self._F_det, "b_qp": self._b_det}
             fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
                             values=self._barrier_values() | qp | {"geometric": geometric, "clamp": int(clamp)})
-            parts.append(self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, qp))
+            parts["barrier"] = self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, qp)
         if ind.count:
             fields = {"du": self._side_trial, "v": self._side_test}
-            parts.append(self._assemble("contact", contact.contact_hessian_form, self._q_contact, fields,
-                                        self._contact_values(ind)))
-        return parts
+            parts["contact"] = self._assemble("contact", contact.contact_hessian_form, self._q_contact, fields,
+                                              self._contact_values(ind))
+        H = self._H
+        wp.copy(H.values, self._H_dev.values, count=self._H_dev.nnz)
+        for name, part in parts.items():
+            slots = self._sum_slots(name, part)
+            wp.launch(_add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
+        return H
 
-    def _assemble(self, name: str, form, quadrature, fields: dict, values: dict):
+    def _assemble(self, name: str, form, quadrature, fields: dict, values: dict) -> BsrMatrix:
         """A Hessian part, assembled into the same matrix each time (``self._H_parts[name]``). Its sparsity does not
         change between Newton iterations, so after the first assembly warp.fem's mapped construction skips the
         topology (the sort of every element's triplets) and scatters values only: atomically on the CPU (serial,
@@ -117,6 +139,24 @@ class Assembly:
             fem.integrate(form, quadrature=quadrature, fields=fields, values=values, output=H,
                           bsr_options={"construction": construction, "capacity": "reuse"})
         return H
+
+    def _sum_slots(self, name: str, part: BsrMatrix) -> wp.array:
+        """For each block of the part ``name``, its index among the sum's blocks (made once: a part's sparsity is
+        kept, ``_assemble``). Every part's blocks couple nodes of one element, so each has a place in the deviatoric
+        part's sparsity, which is the sum's."""
+        slots = self._H_slots.get(name)
+        if slots is None:
+            def keys(M: BsrMatrix) -> np.ndarray:
+                n = int(M.offsets.numpy()[-1])
+                rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(M.offsets.numpy()))
+                return rows[:n] * M.ncol + M.columns.numpy()[:n]
+
+            into, own = keys(self._H_dev), keys(part)
+            index = np.searchsorted(into, own)  # a BSR matrix's blocks are sorted by row, then column
+            if np.any(index >= len(into)) or np.any(into[np.minimum(index, len(into) - 1)] != own):
+                raise RuntimeError(f"the {name} Hessian has a block outside the elements' sparsity")
+            slots = self._H_slots[name] = wp.array(index.astype(np.int32), dtype=int, device=self.device)
+        return slots
 
     def _free_norm(self, g: wp.array) -> float:
         a = g.numpy()

@@ -179,44 +179,40 @@ class LinearSolver:
         self.not_definite = 0  # device solves stopped because the matrix is not positive definite
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
-        self._static: tuple[int, sp.csr_matrix] | None = None
         self._analysed: tuple[sp.csc_matrix, object] | None = None  # (pattern, CHOLMOD analysis of it)
         # the host path's BLAS (numpy's, scipy's and CHOLMOD's OpenBLAS) held to one thread: see ``_solve_direct``
         self._blas: ThreadpoolController | None = None  # made on the first host solve
         self._converged_iterations = 0  # CG iterations of the last converged device solve
         self._last_cg: tuple | None = None  # the last converged device system's (matrix, preconditioner)
 
-    def solve(self, H: BsrMatrix | list[BsrMatrix], rhs: wp.array, definite: bool = False,
+    def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
               rtol: float | None = None, exact_below: float = 0.0) -> wp.array | None:
-        """Returns du (wp.array of vec3d on the device). ``H`` may be a list of matrices to be summed. With
+        """Returns du (wp.array of vec3d on the device). ``H`` is changed: its fixed rows and columns are projected out
+        in place (the caller assembles it anew for each system, assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         the direct path solves exactly either way."""
-        parts = H if isinstance(H, (list, tuple)) else [H]
         self.forget()
         if self.method == "cg":
-            x = self._solve_cg(parts, rhs, rtol or self.cg_tol, exact_below)
+            x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)
             if x is not None:
                 return x
             if definite:
                 return None
             self.cg_fallbacks += 1
-        return self._solve_direct(parts, rhs, definite)
+        return self._solve_direct(H, rhs, definite)
 
-    def _solve_direct(self, parts: list[BsrMatrix], rhs: wp.array, definite: bool = False) -> wp.array | None:
+    def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False) -> wp.array | None:
         """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,
         scipy's, CHOLMOD's) spin-wait against each other and the next Warp kernel on few cores; on the 2-core CPU
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
         against 38 ms on one thread, and the process 10 s of system time in 15 s."""
-        if self._static is None or self._static[0] != id(parts[0]):  # parts[0] is reused: convert it once
-            self._static = (id(parts[0]), bsr_to_scipy(parts[0]))
-        A = self._static[1]
-        for P in parts[1:]:
-            A = A + bsr_to_scipy(P)
-        A.eliminate_zeros()  # blocks of structural zeros (a part assembled into a kept pattern, solver.py)
-        A = A[self._free][:, self._free].tocsc()
+        A = bsr_to_scipy(H)[self._free][:, self._free].tocsc()
+        if self._analysed is None:  # the analysis's pattern: every stored block, zero or not (the elements' sparsity)
+            self._analysed = (_pattern(A), None)
+        A.eliminate_zeros()  # e.g. the pairs of P2 vertex nodes in the volumetric part (zero at its one point)
         b = rhs.numpy().reshape(-1)[self._free]
         if self._blas is None:
             _cholmod()  # loads CHOLMOD's OpenBLAS first, so that the controller finds it
@@ -245,19 +241,17 @@ class LinearSolver:
         return self._lu.solve(b)
 
     def _analysis(self, A: sp.csc_matrix):
-        """CHOLMOD's symbolic analysis of a pattern that contains A's (None without CHOLMOD). Made for the first
-        matrix together with the elements' whole pattern (the constant deviatoric part: every other part's entries
-        lie within it), and again, on the union, only if a later matrix has an entry outside it."""
+        """CHOLMOD's symbolic analysis of a pattern that contains A's (None without CHOLMOD): made once, on the
+        first matrix's whole stored pattern (the elements' sparsity, which every later matrix shares), and again, on
+        the union, only if a later matrix has an entry outside it."""
         cholmod = _cholmod()
         if cholmod is None:
             return None
-        pattern = _pattern(A)
-        if self._analysed is None:
-            pattern = _pattern(pattern + _pattern(self._static[1][self._free][:, self._free]))
-        else:
-            union = self._analysed[0] + pattern
-            if union.nnz == self._analysed[0].nnz:
-                return self._analysed[1]
+        pattern, analysis = self._analysed
+        if analysis is not None:
+            union = pattern + _pattern(A)
+            if union.nnz == pattern.nnz:
+                return analysis
             pattern = _pattern(union)
         self._analysed = (pattern, cholmod.analyze(pattern))
         return self._analysed[1]
@@ -310,12 +304,9 @@ class LinearSolver:
         self._last_free = None
         self._last_cg = None
 
-    def _solve_cg(self, parts: list[BsrMatrix], rhs: wp.array, rtol: float, exact_below: float) -> wp.array | None:
+    def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float) -> wp.array | None:
         """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
-        left as it was)."""
-        H = wp.sparse.bsr_copy(parts[0])  # parts[0] is reused by the caller: project a copy
-        for P in parts[1:]:
-            wp.sparse.bsr_axpy(P, H)
+        left as it was; H is projected in place)."""
         wp.launch(_project_fixed_blocks, dim=H.nrow, device=self.device,
                   inputs=[H.offsets, H.row_counts, H.columns, H.values, self._fixed])
         b = wp.empty_like(rhs)

@@ -128,6 +128,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self._poses: list[np.ndarray] | None = None
         self._H_dev = None  # the Hessian's constant deviatoric part (assembly.py)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
+        self._H = None  # the summed Hessian (``_hessian``), and each part's places in it (``_sum_slots``)
+        self._H_slots: dict = {}
         self._increment: tuple[wp.array, np.ndarray, float] | None = None  # last (du, pose step, penetration)
         self.stats: Counter = Counter()  # per frame: backtracks, stiffness_raises, warm_starts, lag_updates
         self.frame_index = 0
