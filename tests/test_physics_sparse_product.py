@@ -12,9 +12,9 @@ from transtac_sim.physics.linear import _project_fixed_blocks, bsr_to_scipy
 from transtac_sim.physics.sparse_product import block_row_operator
 
 
-def _pressed_hessian():
-    """The summed Newton Hessian (elastic, barrier where it acts, contact with friction) of a sphere pressed 0.3 mm
-    into a small P2 block, as the device CG receives it."""
+def _pressed_solver():
+    """A sphere pressed 0.3 mm into a small P2 block (friction 0.5), and its indenter struct, with the contact state
+    of the solution stored."""
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
     solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])
@@ -26,6 +26,13 @@ def _pressed_hessian():
     solver.solve_frame([Q])
     ind = solver._indenter_struct([Q], [Q])
     solver._gradient(ind)  # stores the contact state the Hessian uses
+    return solver, ind
+
+
+def _pressed_hessian():
+    """The summed Newton Hessian (elastic, barrier where it acts, contact with friction) of ``_pressed_solver``, as
+    the device CG receives it."""
+    solver, ind = _pressed_solver()
     return wp.sparse.bsr_copy(solver._hessian(ind, 1.0, True))
 
 
@@ -62,19 +69,9 @@ def test_fixed_projection_matches_warp_fem():
 
 def test_summed_hessian_equals_the_sum_of_its_parts():
     """assembly.py adds each Hessian part into one kept matrix through precomputed block places: the result equals
-    scipy's sum of the parts (deviatoric, volumetric, contact with friction), and a second assembly at another state
-    overwrites the first instead of adding to it."""
-    V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
-    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])
-    P = np.eye(4)
-    P[2, 3] = 4.0 + 1e-3
-    solver.start([P])
-    Q = P.copy()
-    Q[2, 3] = 4.0 - 0.3
-    solver.solve_frame([Q])
-    ind = solver._indenter_struct([Q], [Q])
-    solver._gradient(ind)
+    scipy's sum of the parts (deviatoric, volumetric, contact with friction), and a second assembly overwrites the
+    first instead of adding to it."""
+    solver, ind = _pressed_solver()
     first = bsr_to_scipy(solver._hessian(ind, 1.0, False))
     H = bsr_to_scipy(solver._hessian(ind, 1.0, False))
     parts = [bsr_to_scipy(solver._H_dev)] + [bsr_to_scipy(M) for M in solver._H_parts.values()]
