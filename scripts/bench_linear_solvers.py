@@ -5,7 +5,7 @@
 
 Solves the scene's first ``--frames`` frames with the CG path (``linear_solver = "cg"``) and keeps
 ``--systems`` of the Newton systems it met (every fifth, then evenly spread; each as the solver hands it to CG: the summed
-Hessian parts with the fixed dofs projected out, and the right-hand side). Each kept system is then solved
+Hessian with the fixed dofs projected out, and the right-hand side). Each kept system is then solved
 by conjugate gradients with each preconditioner and relative tolerance below; per combination: median CG
 iterations, median milliseconds per solve (preconditioner set-up included, device synchronised) and the
 median relative error |x - x_ref| / |x_ref| against a reference solve (block-Jacobi, tolerance 1e-10).
@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_md import machine_name, update_section  # noqa: E402
 
 from transtac_sim.dataset.sequence import StageClock  # noqa: E402
+from transtac_sim.physics import linear  # noqa: E402
 from transtac_sim.physics.linear import LinearSolver  # noqa: E402
 from transtac_sim.scene_setup import load_setup  # noqa: E402
 from transtac_sim.simulation import simulate_frames  # noqa: E402
@@ -50,21 +51,21 @@ def record_systems(scene: Path, frames: int, device: str, every: int = 5, keep: 
     systems, merge_seconds, met = [], [], [0]
     original = LinearSolver._solve_cg
 
-    def recording(self, parts, rhs, *args, **kwargs):
+    def recording(self, H, rhs, *args, **kwargs):
         met[0] += 1
         if (met[0] - 1) % every or len(systems) >= keep:  # keep a spread of them (each is ~0.4 GB at 10^5 dofs)
-            return original(self, parts, rhs, *args, **kwargs)
+            return original(self, H, rhs, *args, **kwargs)
         wp.synchronize_device()
         t0 = time.perf_counter()
-        H = wp.sparse.bsr_copy(parts[0])
-        for P in parts[1:]:
-            wp.sparse.bsr_axpy(P, H)
-        b = wp.clone(rhs)
-        wp.fem.project_linear_system(H, b, self._projector, normalize_projector=False)
+        K = wp.sparse.bsr_copy(H)  # the solver projects H in place: keep a projected copy, as CG receives it
+        wp.launch(linear._project_fixed_blocks, dim=K.nrow, device=K.device,
+                  inputs=[K.offsets, K.row_counts, K.columns, K.values, self._fixed])
+        b = wp.empty_like(rhs)
+        wp.launch(linear._free_part, dim=len(b), device=b.device, inputs=[rhs, self._fixed, b])
         wp.synchronize_device()
         merge_seconds.append(time.perf_counter() - t0)
-        systems.append((H, b))
-        return original(self, parts, rhs, *args, **kwargs)
+        systems.append((K, b))
+        return original(self, H, rhs, *args, **kwargs)
 
     LinearSolver._solve_cg = recording
     try:
@@ -73,7 +74,7 @@ def record_systems(scene: Path, frames: int, device: str, every: int = 5, keep: 
                   flush=True)
     finally:
         LinearSolver._solve_cg = original
-    print(f"summing and projecting the Hessian parts: median {1000 * statistics.median(merge_seconds):.1f} ms",
+    print(f"copying and projecting a Newton matrix: median {1000 * statistics.median(merge_seconds):.1f} ms",
           flush=True)
     return systems
 

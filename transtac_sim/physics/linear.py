@@ -13,7 +13,9 @@
   (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` is a relative residual
   of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
   press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
-  forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. Where CG does not reach its tolerance in
+  forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
+  a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
+  a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where CG does not reach its tolerance in
   ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a sharp tip), that system is solved by
   the direct path instead (``cg_fallbacks`` counts them). The last converged system's matrix and
   preconditioner are kept for ``solve_last``. Block-Jacobi because it is the cheapest per solve here: Warp's
