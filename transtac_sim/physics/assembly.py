@@ -146,10 +146,10 @@ class Assembly:
         part's sparsity, which is the sum's."""
         slots = self._H_slots.get(name)
         if slots is None:
-            def keys(M: BsrMatrix) -> np.ndarray:
-                n = int(M.offsets.numpy()[-1])
-                rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(M.offsets.numpy()))
-                return rows[:n] * M.ncol + M.columns.numpy()[:n]
+            def keys(M: BsrMatrix) -> np.ndarray:  # row * ncol + column of each block, in storage order
+                offsets = M.offsets.numpy()
+                rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(offsets))
+                return rows * M.ncol + M.columns.numpy()[:offsets[-1]]
 
             into, own = keys(self._H_dev), keys(part)
             index = np.searchsorted(into, own)  # a BSR matrix's blocks are sorted by row, then column

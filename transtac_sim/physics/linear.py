@@ -212,12 +212,13 @@ class LinearSolver:
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
         against 38 ms on one thread, and the process 10 s of system time in 15 s."""
         A = bsr_to_scipy(H)[self._free][:, self._free].tocsc()
-        if self._analysed is None:  # the analysis's pattern: every stored block, zero or not (the elements' sparsity)
-            self._analysed = (_pattern(A), None)
-        A.eliminate_zeros()  # e.g. the pairs of P2 vertex nodes in the volumetric part (zero at its one point)
+        cholmod = _cholmod()  # loaded before the BLAS controller below is made, so that it finds CHOLMOD's OpenBLAS
+        if self._analysed is None and cholmod is not None:  # on every stored entry, zero or not: the elements'
+            pattern = _pattern(A)  # sparsity, which every later matrix shares
+            self._analysed = (pattern, cholmod.analyze(pattern))
+        A.eliminate_zeros()  # e.g. the off-diagonal entries of the blocks only the deviatoric part fills
         b = rhs.numpy().reshape(-1)[self._free]
         if self._blas is None:
-            _cholmod()  # loads CHOLMOD's OpenBLAS first, so that the controller finds it
             self._blas = ThreadpoolController()
         with self._blas.limit(limits=1, user_api="blas"):
             x_free = self._solve_free(A, b, definite)
@@ -243,19 +244,15 @@ class LinearSolver:
         return self._lu.solve(b)
 
     def _analysis(self, A: sp.csc_matrix):
-        """CHOLMOD's symbolic analysis of a pattern that contains A's (None without CHOLMOD): made once, on the
-        first matrix's whole stored pattern (the elements' sparsity, which every later matrix shares), and again, on
-        the union, only if a later matrix has an entry outside it."""
-        cholmod = _cholmod()
-        if cholmod is None:
+        """CHOLMOD's symbolic analysis of a pattern that contains A's (None without CHOLMOD): the one made on the
+        first matrix (``_solve_direct``), or a new one on the union where A has an entry outside it."""
+        if self._analysed is None:
             return None
-        pattern, analysis = self._analysed
-        if analysis is not None:
-            union = pattern + _pattern(A)
-            if union.nnz == pattern.nnz:
-                return analysis
+        pattern = self._analysed[0]
+        union = pattern + _pattern(A)
+        if union.nnz != pattern.nnz:
             pattern = _pattern(union)
-        self._analysed = (pattern, cholmod.analyze(pattern))
+            self._analysed = (pattern, _cholmod().analyze(pattern))
         return self._analysed[1]
 
     def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:

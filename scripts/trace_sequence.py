@@ -1,0 +1,73 @@
+"""One sequence of a scene, frame by frame, with the solver record of each frame, and the Python stack on demand: to
+find where a sequence that will not finish spends its time.
+
+    .venv/bin/python scripts/trace_sequence.py scenes/train_random.toml --sequence 17 --frames 3 \
+        [--mode physics|worker] [--linear-solver auto|direct|cg]
+
+``--mode physics`` solves the frames as ``simulate_frames`` does (what ``fem_frame_timing.py`` times); ``--mode worker``
+runs the sequence as one ``generate`` worker does (physics, render, labels, write into a temporary dataset folder),
+in this process. Each frame prints its seconds, Newton iterations, sub-steps, residual (N) and Fz (N);
+``kill -USR1 <pid>`` prints the main thread's Python stack to stderr (``faulthandler``; its periodic dump from a
+watchdog thread crashed this process in libpython twice, so it is not used). The gel mesh comes from the
+mesh cache (``TRANSTAC_SIM_CACHE``): a mesh built anew elsewhere differs, and so do the frames (README, Determinism).
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import json
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import typer
+
+from transtac_sim.config import load_scene
+from transtac_sim.physics import QuasiStaticSolver
+
+
+def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = typer.Option(3, min=1),
+         mode: str = typer.Option("physics", help="physics or worker"),
+         linear_solver: str = typer.Option("auto", help="auto, direct or cg")) -> None:
+    if mode not in ("physics", "worker"):
+        raise typer.BadParameter(f"--mode must be physics or worker, got {mode!r}")
+    faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=False)
+    solve_frame = QuasiStaticSolver.solve_frame
+
+    def logged(self, poses):
+        t0 = time.perf_counter()
+        result = solve_frame(self, poses)
+        r = result.record
+        print(f"frame {self.frame_index - 1}: {time.perf_counter() - t0:.1f} s, {r.iterations} Newton iterations, "
+              f"{r.substeps} sub-step(s), residual {r.residual:.2e} N, Fz {result.forces_n[0][2]:.4f} N", flush=True)
+        return result
+
+    QuasiStaticSolver.solve_frame = logged
+    path = scene.resolve()
+    loaded = load_scene(path)
+    loaded = loaded.model_copy(update={"physics": loaded.physics.model_copy(update={"linear_solver": linear_solver})})
+    if mode == "physics":
+        from transtac_sim.dataset.sequence import StageClock, sequence_setup
+        from transtac_sim.simulation import simulate_frames
+
+        setup, _ = sequence_setup(loaded, path, sequence)
+        for _ in simulate_frames(setup, frames, StageClock()):
+            pass
+        return
+    from transtac_sim.dataset.generate import SequenceTask, _run_task
+    from transtac_sim.scene_setup import build_setup
+    from transtac_sim.writer.atomic import write_json
+
+    resolved = json.loads(loaded.model_dump_json())
+    resolved["frames_per_sequence"] = frames
+    with tempfile.TemporaryDirectory() as root:
+        write_json(Path(root) / "calibration.json", build_setup(loaded, path).sensor.calibration_json())
+        for record in _run_task(SequenceTask(str(path), json.dumps(resolved), sequence, root)):
+            print(f"frame {record['frame']}: {record['status']}" + (f" ({record['reason']})" if "reason" in record
+                                                                      else ""), flush=True)
+
+
+if __name__ == "__main__":
+    typer.run(main)
