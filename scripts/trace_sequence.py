@@ -6,7 +6,9 @@ find where a sequence that will not finish spends its time.
 
 ``--mode physics`` solves the frames as ``simulate_frames`` does (what ``fem_frame_timing.py`` times); ``--mode worker``
 runs the sequence as one ``generate`` worker does (physics, render, labels, write into a temporary dataset folder),
-in this process. Each frame prints its seconds, Newton iterations, sub-steps, residual (N) and Fz (N);
+in this process. Each load sub-step prints its seconds, Newton iterations, outcome and the frame's counters so far;
+each frame its seconds, Newton iterations, sub-steps, residual (N) and Fz (N); each device CG that stops unconverged
+its reason, and each host solve its seconds;
 ``kill -USR1 <pid>`` prints the main thread's Python stack to stderr (``faulthandler``; its periodic dump from a
 watchdog thread crashed this process in libpython twice, so it is not used). The gel mesh comes from the
 mesh cache (``TRANSTAC_SIM_CACHE``): a mesh built anew elsewhere differs, and so do the frames (README, Determinism).
@@ -25,7 +27,50 @@ from pathlib import Path
 import typer
 
 from transtac_sim.config import load_scene
-from transtac_sim.physics import QuasiStaticSolver
+from transtac_sim.physics import QuasiStaticSolver, linear
+
+
+def _trace_solver() -> None:
+    """Prints, as they happen: each frame, each load sub-step, each device CG that stopped without converging (why,
+    after how many iterations) and each host (direct) solve with its seconds."""
+    solve_frame, solve_step = QuasiStaticSolver.solve_frame, QuasiStaticSolver._solve_step
+    cg, solve_direct = linear.definite_cg, linear.LinearSolver._solve_direct
+
+    def logged(self, poses):
+        t0 = time.perf_counter()
+        result = solve_frame(self, poses)
+        r = result.record
+        print(f"frame {self.frame_index - 1}: {time.perf_counter() - t0:.1f} s, {r.iterations} Newton iterations, "
+              f"{r.substeps} sub-step(s), residual {r.residual:.2e} N, Fz {result.forces_n[0][2]:.4f} N, "
+              f"{self._linear.shifted_solves} shifted device solves so far", flush=True)
+        return result
+
+    def logged_step(self, poses, prev_poses):
+        t0 = time.perf_counter()
+        ok, iterations, why, pen = solve_step(self, poses, prev_poses)
+        print(f"  sub-step to z {poses[0][2, 3]:.4f} mm: {time.perf_counter() - t0:.1f} s, {iterations} Newton "
+              f"iterations, {'converged' if ok else 'failed: ' + why}, penetration {pen:.3g} mm, "
+              f"{dict(self.stats)}", flush=True)
+        return ok, iterations, why, pen
+
+    def logged_cg(A, b, x, rtol, maxiter, M=None, atol=0.0):
+        result = cg(A, b, x, rtol, maxiter, M, atol)
+        if not result.converged:
+            print(f"    device CG stopped ({'not positive definite' if result.not_definite else 'iteration cap'}) "
+                  f"after {result.iterations} of {maxiter} iterations, rtol {rtol:.1e}", flush=True)
+        return result
+
+    def logged_direct(self, H, rhs, definite=False):
+        t0 = time.perf_counter()
+        x = solve_direct(self, H, rhs, definite)
+        print(f"    host solve of {len(self._free)} dofs: {time.perf_counter() - t0:.1f} s, {self.factorisations} "
+              f"factorisation(s) so far", flush=True)
+        return x
+
+    QuasiStaticSolver.solve_frame = logged
+    QuasiStaticSolver._solve_step = logged_step
+    linear.definite_cg = logged_cg
+    linear.LinearSolver._solve_direct = logged_direct
 
 
 def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = typer.Option(3, min=1),
@@ -34,17 +79,7 @@ def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = type
     if mode not in ("physics", "worker"):
         raise typer.BadParameter(f"--mode must be physics or worker, got {mode!r}")
     faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=False)
-    solve_frame = QuasiStaticSolver.solve_frame
-
-    def logged(self, poses):
-        t0 = time.perf_counter()
-        result = solve_frame(self, poses)
-        r = result.record
-        print(f"frame {self.frame_index - 1}: {time.perf_counter() - t0:.1f} s, {r.iterations} Newton iterations, "
-              f"{r.substeps} sub-step(s), residual {r.residual:.2e} N, Fz {result.forces_n[0][2]:.4f} N", flush=True)
-        return result
-
-    QuasiStaticSolver.solve_frame = logged
+    _trace_solver()
     path = scene.resolve()
     loaded = load_scene(path)
     loaded = loaded.model_copy(update={"physics": loaded.physics.model_copy(update={"linear_solver": linear_solver})})

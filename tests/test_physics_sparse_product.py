@@ -1,14 +1,17 @@
-"""The device CG's matrix-vector product (physics/sparse_product.py) against scipy, and its projection of the fixed
-degrees of freedom (physics/linear.py) against warp.fem's, on a real Newton Hessian."""
+"""The device CG's matrix-vector product (physics/sparse_product.py) against scipy, its projection of the fixed
+degrees of freedom (physics/linear.py) against warp.fem's, and its last resort (a shifted system) against scipy's
+solve, on a real Newton Hessian."""
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 import trimesh
 import warp as wp
 import warp.fem as fem
 
 from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter
 from transtac_sim.physics.box_mesh import gel_block
-from transtac_sim.physics.linear import _project_fixed_blocks, bsr_to_scipy
+from transtac_sim.physics.linear import SHIFTS, LinearSolver, _project_fixed_blocks, bsr_to_scipy
 from transtac_sim.physics.sparse_product import block_row_operator
 
 
@@ -79,3 +82,32 @@ def test_summed_hessian_equals_the_sum_of_its_parts():
     expected = sum(parts[1:], parts[0])
     assert abs(H - expected).max() <= 1e-13 * abs(expected).max()
     assert abs(first - H).max() <= 1e-13 * abs(expected).max()  # not accumulated over the two calls
+
+
+def test_device_last_resort_solves_the_shifted_system():
+    """Newton's last Hessian (Gauss-Newton, ``definite=False``) that the device CG does not solve (here: 8 iterations
+    allowed, to a relative residual of 1e-10) is solved with a Levenberg-Marquardt shift, H + lambda |diag H|
+    (linear.py ``SHIFTS``): the step equals scipy's solution of that shifted system on the free dofs and is a descent
+    direction. A Hessian that must be positive definite returns None instead, and so does the last one where no
+    shift converges (1 iteration allowed); nothing is handed to the host."""
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    linear.cg_maxiter = 8
+    g = solver._gradient(ind).numpy()
+    g[solver._fixed_nodes] = 0.0
+    rhs = wp.array(-g, dtype=wp.vec3d)
+    H = solver._hessian(ind, 0.0, True)
+    projected = wp.sparse.bsr_copy(H)
+    wp.launch(_project_fixed_blocks, dim=H.nrow, inputs=[projected.offsets, projected.row_counts, projected.columns,
+                                                         projected.values, linear._fixed])
+    A = bsr_to_scipy(projected).tocsr()[linear._free][:, linear._free]
+    du = linear.solve(H, rhs, definite=False, rtol=1e-10)
+    assert du is not None and linear.shifted_solves == 1 and linear.last_shift in SHIFTS
+    shifted = (A + linear.last_shift * sp.diags(np.abs(A.diagonal()))).tocsc()
+    expected = spla.spsolve(shifted, -g.reshape(-1)[linear._free])
+    x = du.numpy().reshape(-1)
+    np.testing.assert_allclose(x[linear._free], expected, rtol=0, atol=1e-7 * np.abs(expected).max())
+    assert np.all(x[~np.isin(np.arange(x.size), linear._free)] == 0.0) and float(np.dot(x, -g.reshape(-1))) > 0.0
+    assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-10) is None
+    linear.cg_maxiter = 1
+    assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=False, rtol=1e-10) is None

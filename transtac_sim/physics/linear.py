@@ -15,9 +15,14 @@
   press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
   forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
   a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
-  a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where CG does not reach its tolerance in
-  ``cg_maxiter`` iterations (e.g. a few very stiff contact points under a sharp tip), that system is solved by
-  the direct path instead (``cg_fallbacks`` counts them). The last converged system's matrix and
+  a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where the last Hessian Newton tries
+  (``definite=False``) is not solved either (CG stops at non-positive curvature or at ``cg_maxiter``), the system is
+  shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a scaled gradient step, always a
+  descent direction), and solved again on the device; ``shifted_solves`` counts them and ``last_shift`` tells Newton
+  that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
+  10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
+  within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
+  ``fem_device_last_resort_gpu``). The last converged system's matrix and
   preconditioner are kept for ``solve_last``. Block-Jacobi because it is the cheapest per solve here: Warp's
   FSAI halves CG's iterations but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) costs more than
   it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
@@ -55,6 +60,30 @@ def _project_fixed_blocks(offsets: wp.array(dtype=int), row_counts: wp.array(dty
 
 
 @wp.kernel(enable_backward=False)
+def _add_to_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                     blocks: wp.array(dtype=wp.mat33d), d: wp.array(dtype=wp.vec3d), delta: wp.float64):
+    """Each diagonal block B += delta diag(d[row]), in place (one thread per block row)."""
+    row = wp.tid()
+    blocks_of_row = block_row_range(offsets, row_counts, row)
+    for k in range(blocks_of_row[0], blocks_of_row[1]):
+        if columns[k] == row:
+            blocks[k] = blocks[k] + delta * wp.diag(d[row])
+
+
+@wp.kernel(enable_backward=False)
+def _diagonal_magnitudes(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                         blocks: wp.array(dtype=wp.mat33d), d: wp.array(dtype=wp.vec3d)):
+    """d[row] = |diagonal| of the row's diagonal block (0 where it has none)."""
+    row = wp.tid()
+    blocks_of_row = block_row_range(offsets, row_counts, row)
+    d[row] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for k in range(blocks_of_row[0], blocks_of_row[1]):
+        if columns[k] == row:
+            B = blocks[k]
+            d[row] = wp.vec3d(wp.abs(B[0, 0]), wp.abs(B[1, 1]), wp.abs(B[2, 2]))
+
+
+@wp.kernel(enable_backward=False)
 def _free_part(v: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     """(I - P) v: v with its fixed components set to 0."""
     i = wp.tid()
@@ -75,6 +104,11 @@ class _Factor:
 
     def __init__(self, solve, shape, kind: str):
         self.solve, self.shape, self.kind = solve, shape, kind
+
+
+#: lambda of the device's last resort, H + lambda |diag(H)|, tried in turn; at 100 the block-Jacobi-preconditioned
+#: system is close to the identity and CG converges in a few iterations
+SHIFTS = (1.0e-2, 1.0, 1.0e2)
 
 
 def _cholmod():
@@ -177,7 +211,8 @@ class LinearSolver:
         self.reuse_max_iterations = reuse_max_iterations
         self.reuse_rtol = reuse_rtol
         self.factorisations = 0
-        self.cg_fallbacks = 0
+        self.shifted_solves = 0  # device systems solved only with a Levenberg-Marquardt shift (``SHIFTS``)
+        self.last_shift = 0.0  # the shift lambda of the last solve's result (0: a Newton step)
         self.not_definite = 0  # device solves stopped because the matrix is not positive definite
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
@@ -195,16 +230,35 @@ class LinearSolver:
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
-        the direct path solves exactly either way."""
+        the direct path solves exactly either way. Without ``definite``, a system the device CG does not solve is
+        shifted (``_solve_shifted``)."""
         self.forget()
-        if self.method == "cg":
-            x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)
+        self.last_shift = 0.0
+        if self.method == "direct":
+            return self._solve_direct(H, rhs, definite)
+        x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)
+        if x is not None or definite:
+            return x
+        return self._solve_shifted(H, rhs, rtol or self.cg_tol)
+
+    def _solve_shifted(self, H: BsrMatrix, rhs: wp.array, rtol: float) -> wp.array | None:
+        """H + lambda |diag(H)| solved by the device CG for lambda in ``SHIFTS`` in turn (H, already projected, is
+        changed in place), the first that converges; None if none does. Not kept for ``solve_last``: it is not the
+        Hessian."""
+        shape = [H.offsets, H.row_counts, H.columns, H.values]
+        d = wp.empty(H.nrow, dtype=wp.vec3d, device=self.device)
+        wp.launch(_diagonal_magnitudes, dim=H.nrow, device=self.device, inputs=[*shape, d])
+        before = 0.0
+        for lam in SHIFTS:
+            wp.launch(_add_to_diagonal, dim=H.nrow, device=self.device, inputs=[*shape, d, wp.float64(lam - before)])
+            before = lam
+            x = self._solve_cg(H, rhs, rtol, 0.0)
             if x is not None:
+                self.shifted_solves += 1
+                self.last_shift = lam
+                self.forget()
                 return x
-            if definite:
-                return None
-            self.cg_fallbacks += 1
-        return self._solve_direct(H, rhs, definite)
+        return None
 
     def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False) -> wp.array | None:
         """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,

@@ -25,7 +25,7 @@ class SolverSettings:
     # converged state, so a higher cap is cheaper there: a cube edge pressed 1.5 mm (train_random sequence 4,
     # frames 0-3, one H100) took 38.7 s of physics with 120 against 101.8 s with 40 (16 sub-steps in frame 2)
     max_newton_iterations: int | None = None
-    max_substep_halvings: int = 5  # up to 2**5 sub-steps per frame
+    max_substep_halvings: int = 5  # the smallest sub-step: 1/2**5 of the frame's motion (solver.py)
     # "direct" (CHOLMOD/SuperLU on the host), "cg" (Warp, on the device); "auto": cg on a GPU, else direct
     # (on an H100, cg solves the press-and-slide frames about 20x faster than the host factorisation)
     linear_solver: str = "auto"

@@ -8,9 +8,9 @@ This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs) and t
 its gradient and Hessian is in assembly.py. The Newton iteration of one (sub)step is in newton.py: warm start
 from the extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a
 line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
-A step that does not converge or leaves a penetration above ``penetration_tol_mm`` is retried in halves of
-the pose increment (adaptive load sub-stepping, ``max_substep_halvings``), starting again from the last good
-state; past that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried. Nothing
+A step that does not converge or leaves a penetration above ``penetration_tol_mm`` is retried with half the
+pose increment from the last converged sub-step, and the rest of the frame goes on in steps of that size (adaptive
+load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame); past that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried. Nothing
 half-solved is ever returned.
 """
 
@@ -250,35 +250,37 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         t0 = time.perf_counter()
         frame = self.frame_index
         self.stats = Counter()
-        wp.copy(self.u_prev.dof_values, self.u.dof_values)
         u_frame_start = wp.clone(self.u.dof_values)
         tried = []
-        total_iterations = 0
-        for halvings in range(self.settings.max_substep_halvings + 1):
-            n_sub = 2**halvings
-            wp.copy(self.u.dof_values, u_frame_start)
-            ok, why = True, ""
-            prev = self._poses
-            for k in range(1, n_sub + 1):
-                target = [_interpolate_pose(A, B, k / n_sub) for A, B in zip(self._poses, poses, strict=False)]
-                wp.copy(self.u_prev.dof_values, self.u.dof_values)
-                ok, it, why, pen = self._solve_step(target, prev)
-                total_iterations += it
-                if ok and pen > self.settings.penetration_tol_mm:
-                    ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
-                if not ok:
-                    tried.append(f"{n_sub} sub-step(s): failed in sub-step {k} ({why})")
-                    break
-                prev = target
+        total_iterations, steps = 0, 0
+        # the frame's motion in units of 1/2**max_substep_halvings: from `done` in steps of `size` (halved at a failure)
+        whole = 2**self.settings.max_substep_halvings
+        done, size, prev, ok = 0, whole, self._poses, True
+        while done < whole:
+            size = min(size, whole - done)
+            target = [_interpolate_pose(A, B, (done + size) / whole) for A, B in zip(self._poses, poses, strict=False)]
+            wp.copy(self.u_prev.dof_values, self.u.dof_values)  # the last converged state: Newton starts there
+            ok, it, why, pen = self._solve_step(target, prev)
+            total_iterations += it
+            if ok and pen > self.settings.penetration_tol_mm:
+                ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
             if ok:
+                done, prev, steps = done + size, target, steps + 1
+                continue
+            tried.append(f"the step from {done / whole:g} to {(done + size) / whole:g} of the frame's motion failed "
+                         f"({why})")
+            wp.copy(self.u.dof_values, self.u_prev.dof_values)
+            if size == 1:
                 break
+            size //= 2
         if not ok:
             wp.copy(self.u.dof_values, u_frame_start)
             names = ", ".join(repr(i.name) for i in self.indenters)
             raise SolverDidNotConverge(
-                f"frame {frame} (indenters {names}) did not converge; tried: " + "; ".join(tried)
-                + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, max_newton_iterations="
-                f"{self._newton_iteration_cap()}, contact stiffness {self.contact_stiffness:.4g} N/mm^3"
+                f"frame {frame} (indenters {names}) did not converge with sub-steps down to 1/{whole} of its motion; "
+                "tried: " + "; ".join(tried) + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, max_newton_iterations="
+                f"{self._newton_iteration_cap()}, max_substep_halvings={self.settings.max_substep_halvings}, contact "
+                f"stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
         g = self._gradient(ind)
@@ -295,7 +297,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             residual=self._free_norm(g),
             min_det_f=self._min_det(self.u),  # > 0: no step that inverts an element is ever accepted
             seconds=time.perf_counter() - t0,
-            substeps=n_sub,
+            substeps=steps,
             max_penetration_mm=pen,
             linear_iterations=self._linear.last_iterations,
             backtracks=self.stats["backtracks"],
