@@ -121,7 +121,7 @@ class NewtonSteps:
             for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
                 du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
                                         rtol=rtol, exact_below=100.0 * tol)  # near convergence the step decides the test
-                if du is None:  # the exact Hessian is not positive definite here
+                if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
                 du_np = du.numpy()
@@ -175,8 +175,9 @@ class NewtonSteps:
         """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one, the clamped one, then
         Gauss-Newton (elasticity.py). A Hessian other than the last is passed over where the linear solver finds it
         is not positive definite: CHOLMOD on the host, the device CG at its first direction of non-positive
-        curvature (definite_cg.py). The clamped one is not always: where the inversion barrier acts, its clamped
-        term adds to the clamped volumetric pressure (train_random sequence 9, a flat punch, on an H100). The last
+        curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive definite on
+        train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform compression
+        with the barrier acting it is, tests/test_physics_barrier.py). The last
         is solved whatever it is: on the host by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt
         shift where CG fails (linear.py)."""
         return ((1.0, False), (1.0, True), (0.0, True))

@@ -10,8 +10,8 @@ from the extrapolated last increment, friction's lag and the contact stiffness u
 line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
 A step that does not converge or leaves a penetration above ``penetration_tol_mm`` is retried with half the
 pose increment from the last converged sub-step, and the rest of the frame goes on in steps of that size (adaptive
-load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame); past that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried. Nothing
-half-solved is ever returned.
+load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame); past that, ``SolverDidNotConverge`` says
+which frame, which indenters and what was tried. Nothing half-solved is ever returned.
 """
 
 from __future__ import annotations
@@ -278,8 +278,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             names = ", ".join(repr(i.name) for i in self.indenters)
             raise SolverDidNotConverge(
                 f"frame {frame} (indenters {names}) did not converge with sub-steps down to 1/{whole} of its motion; "
-                "tried: " + "; ".join(tried) + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, max_newton_iterations="
-                f"{self._newton_iteration_cap()}, max_substep_halvings={self.settings.max_substep_halvings}, contact "
+                "tried: " + "; ".join(tried) + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, "
+                f"max_newton_iterations={self._newton_iteration_cap()}, max_substep_halvings={self.settings.max_substep_halvings}, contact "
                 f"stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
