@@ -55,7 +55,7 @@ class SolverRecord:
     residual: float  # |gradient| (N) on the free dofs at the solution
     min_det_f: float
     seconds: float
-    substeps: int
+    substeps: int  # load steps the frame was solved in (1: in one; more after a failed step was halved, solver.py)
     max_penetration_mm: float = 0.0
     linear_iterations: int = 0
     backtracks: int = 0  # line-search halvings, all (sub)steps of the frame
