@@ -82,8 +82,8 @@ BLOCK = fs.Block(width=6.0, thickness=3.0, h_fine=1.0, fine_half_width=2.0)
 @pytest.mark.parametrize("barrier", [False, True])
 def test_half_thickness_press_needs_the_barrier(barrier, monkeypatch):
     """The sphere pressed to 50 % of the coarse block: without the barrier an element under its rim inverts at
-    the discrete minimum (a clear SolverDidNotConverge at frame 3, sub-steps down to 1/32 of its motion tried); with it every frame
-    converges with det F > 0 and the force keeps rising."""
+    the discrete minimum (a clear SolverDidNotConverge at frame 3, sub-steps down to 1/32 of its motion tried);
+    with it every frame converges with det F > 0 and the force keeps rising."""
     case = next(c for c in fs.cases() if c.name == "depth 50 % of thickness")
     if not barrier:
         monkeypatch.setattr(fs, "SolverSettings", lambda **kw: replace(SolverSettings(**kw), barrier_det_f=0.0))

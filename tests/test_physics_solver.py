@@ -72,7 +72,8 @@ def test_unconvergeable_step_raises_with_context():
     solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()], settings, fixed=fixed)
     solver.start([_lift(3.001)])
     before = solver.nodal_displacement().copy()
-    with pytest.raises(SolverDidNotConverge, match=r"frame 0 \(indenters 'plate'\).*from 0 to 1 of.*from 0 to 0.5 of"):
+    with pytest.raises(SolverDidNotConverge,
+                       match=r"frame 0 \(indenters 'plate'\).*from 0 to 1 of.*from 0 to 0.5 of"):
         solver.solve_frame([_lift(2.5)])
     np.testing.assert_array_equal(solver.nodal_displacement(), before)  # nothing half-solved is kept
 
@@ -127,7 +128,8 @@ def _press_sphere(settings: SolverSettings, depth: float = 0.3):
 
 def test_cg_linear_solver_matches_direct(monkeypatch):
     """The GPU path (Warp CG, here on the CPU) gives the direct solver's frame (its last resort, a shifted system, is
-    tested in test_physics_sparse_product.py). With every Newton system solved to CG's tight tolerance the frames agree to 1e-5 of |u| (the direct path
+    tested in test_physics_sparse_product.py). With every Newton system solved to CG's tight tolerance the frames
+    agree to 1e-5 of |u| (the direct path
     takes the exact elastic Hessian where it is positive definite, CG the clamped one: the Newton paths differ
     a little). With inexact Newton (the default: loose CG
     tolerances far from the solution) the path differs; the penalty contact on the faceted sphere then ends

@@ -106,7 +106,8 @@ class Assembly:
         qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
         fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
                         values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
-        parts["volumetric"] = self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f, vals | qp)
+        parts["volumetric"] = self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f,
+                                             vals | qp)
         if self._barrier_energy(self.u) > 0.0:  # only where some det F is below the barrier's threshold
             qp = {"F_qp": self._F_det, "b_qp": self._b_det}
             fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},

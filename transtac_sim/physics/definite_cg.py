@@ -33,7 +33,7 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
-from transtac_sim.physics.sparse_product import block_row_range
+from transtac_sim.physics.sparse_product import diagonal_block
 
 CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
@@ -57,11 +57,11 @@ class CgResult:
 def _inverse_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
                       blocks: wp.array(dtype=wp.mat33d), inverse: wp.array(dtype=wp.mat33d)):
     row = wp.tid()
-    blocks_of_row = block_row_range(offsets, row_counts, row)
-    inverse[row] = wp.identity(n=3, dtype=wp.float64)  # a row without a diagonal block: not preconditioned
-    for k in range(blocks_of_row[0], blocks_of_row[1]):
-        if columns[k] == row:
-            inverse[row] = wp.inverse(blocks[k])
+    k = diagonal_block(offsets, row_counts, columns, row)
+    if k >= 0:
+        inverse[row] = wp.inverse(blocks[k])
+    else:  # a row without a diagonal block: not preconditioned
+        inverse[row] = wp.identity(n=3, dtype=wp.float64)
 
 
 @wp.kernel(enable_backward=False)

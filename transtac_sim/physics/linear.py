@@ -38,7 +38,7 @@ from threadpoolctl import ThreadpoolController
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
-from transtac_sim.physics.sparse_product import block_row_operator, block_row_range
+from transtac_sim.physics.sparse_product import block_row_operator, block_row_range, diagonal_block
 
 
 @wp.kernel(enable_backward=False)
@@ -64,10 +64,9 @@ def _add_to_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=in
                      blocks: wp.array(dtype=wp.mat33d), d: wp.array(dtype=wp.vec3d), delta: wp.float64):
     """Each diagonal block B += delta diag(d[row]), in place (one thread per block row)."""
     row = wp.tid()
-    blocks_of_row = block_row_range(offsets, row_counts, row)
-    for k in range(blocks_of_row[0], blocks_of_row[1]):
-        if columns[k] == row:
-            blocks[k] = blocks[k] + delta * wp.diag(d[row])
+    k = diagonal_block(offsets, row_counts, columns, row)
+    if k >= 0:
+        blocks[k] = blocks[k] + delta * wp.diag(d[row])
 
 
 @wp.kernel(enable_backward=False)
@@ -75,12 +74,11 @@ def _diagonal_magnitudes(offsets: wp.array(dtype=int), row_counts: wp.array(dtyp
                          blocks: wp.array(dtype=wp.mat33d), d: wp.array(dtype=wp.vec3d)):
     """d[row] = |diagonal| of the row's diagonal block (0 where it has none)."""
     row = wp.tid()
-    blocks_of_row = block_row_range(offsets, row_counts, row)
+    k = diagonal_block(offsets, row_counts, columns, row)
     d[row] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-    for k in range(blocks_of_row[0], blocks_of_row[1]):
-        if columns[k] == row:
-            B = blocks[k]
-            d[row] = wp.vec3d(wp.abs(B[0, 0]), wp.abs(B[1, 1]), wp.abs(B[2, 2]))
+    if k >= 0:
+        B = blocks[k]
+        d[row] = wp.vec3d(wp.abs(B[0, 0]), wp.abs(B[1, 1]), wp.abs(B[2, 2]))
 
 
 @wp.kernel(enable_backward=False)
@@ -245,12 +243,13 @@ class LinearSolver:
         """H + lambda |diag(H)| solved by the device CG for lambda in ``SHIFTS`` in turn (H, already projected, is
         changed in place), the first that converges; None if none does. Not kept for ``solve_last``: it is not the
         Hessian."""
-        shape = [H.offsets, H.row_counts, H.columns, H.values]
+        structure = [H.offsets, H.row_counts, H.columns, H.values]
         d = wp.empty(H.nrow, dtype=wp.vec3d, device=self.device)
-        wp.launch(_diagonal_magnitudes, dim=H.nrow, device=self.device, inputs=[*shape, d])
+        wp.launch(_diagonal_magnitudes, dim=H.nrow, device=self.device, inputs=[*structure, d])
         before = 0.0
         for lam in SHIFTS:
-            wp.launch(_add_to_diagonal, dim=H.nrow, device=self.device, inputs=[*shape, d, wp.float64(lam - before)])
+            wp.launch(_add_to_diagonal, dim=H.nrow, device=self.device,
+                      inputs=[*structure, d, wp.float64(lam - before)])
             before = lam
             x = self._solve_cg(H, rhs, rtol, 0.0)
             if x is not None:

@@ -35,8 +35,8 @@ Issue 12, second pass (scripts/fem_frame_timing.py; scripts/fem_stability.py's s
 Issue 12, third pass, the device path (scripts/fem_phase_profile.py; BENCHMARKS.md ``fem_newton_variants_gpu``):
 CG was 80 % of a press-and-slide frame on an H100, 500 iterations per Newton system at its 1e-8 tolerance.
 Newton's systems are now solved inexactly (``FORCING_MAX``; tightened to ``LinearSolver.cg_tol``, linear.py, once
-the step is small enough to decide convergence), and the step estimate and early lag moves that the host path had (``solve_last``) use
-the last device system: 25 CG iterations per solve instead of 500, 1.4x faster frames.
+the step is small enough to decide convergence), and the step estimate and early lag moves that the host path had
+(``solve_last``) use the last device system: 25 CG iterations per solve instead of 500, 1.4x faster frames.
 
 Issue 12, fourth pass (BENCHMARKS.md ``fem_definite_cg_gpu``): the device path took the clamped Hessian always,
 because Warp's CG cannot tell an indefinite matrix before its iteration cap; where the clamp acts (in compression,
@@ -119,8 +119,9 @@ class NewtonSteps:
             rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)  # CG only: the direct path is exact
             ladder = self._hessian_ladder()
             for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
+                # near convergence (the step below 100 tol) the step's length decides the convergence test
                 du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
-                                        rtol=rtol, exact_below=100.0 * tol)  # near convergence the step decides the test
+                                        rtol=rtol, exact_below=100.0 * tol)
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
@@ -177,9 +178,8 @@ class NewtonSteps:
         is not positive definite: CHOLMOD on the host, the device CG at its first direction of non-positive
         curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive definite on
         train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform compression
-        with the barrier acting it is, tests/test_physics_barrier.py). The last
-        is solved whatever it is: on the host by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt
-        shift where CG fails (linear.py)."""
+        with the barrier acting it is, tests/test_physics_barrier.py). The last is solved whatever it is: on the host
+        by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (linear.py)."""
         return ((1.0, False), (1.0, True), (0.0, True))
 
     def _move_lag(self, ind, remaining: float) -> bool:

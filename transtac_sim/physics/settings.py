@@ -23,7 +23,8 @@ class SolverSettings:
     # per (sub)step; None: 40 with the direct solver, 120 with CG. On the device path (inexact CG, the clamped Hessian
     # where the exact one is not positive definite) Newton converges linearly where the inversion barrier acts; a sub-step starts that work again from the last
     # converged state, so a higher cap is cheaper there: a cube edge pressed 1.5 mm (train_random sequence 4,
-    # frames 0-3, one H100) took 38.7 s of physics with 120 against 101.8 s with 40 (16 sub-steps in frame 2)
+    # frames 0-3, one H100) took 38.7 s of physics with 120 against 101.8 s with 40 (16 sub-steps in frame 2;
+    # measured when each halving started the frame again, before sub-steps went on from the last converged one)
     max_newton_iterations: int | None = None
     max_substep_halvings: int = 5  # the smallest sub-step: 1/2**5 of the frame's motion (solver.py)
     # "direct" (CHOLMOD/SuperLU on the host), "cg" (Warp, on the device); "auto": cg on a GPU, else direct

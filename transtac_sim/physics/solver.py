@@ -258,7 +258,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         done, size, prev, ok = 0, whole, self._poses, True
         while done < whole:
             size = min(size, whole - done)
-            target = [_interpolate_pose(A, B, (done + size) / whole) for A, B in zip(self._poses, poses, strict=False)]
+            target = [_interpolate_pose(A, B, (done + size) / whole)
+                      for A, B in zip(self._poses, poses, strict=False)]
             wp.copy(self.u_prev.dof_values, self.u.dof_values)  # the last converged state: Newton starts there
             ok, it, why, pen = self._solve_step(target, prev)
             total_iterations += it
@@ -279,8 +280,9 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             raise SolverDidNotConverge(
                 f"frame {frame} (indenters {names}) did not converge with sub-steps down to 1/{whole} of its motion; "
                 "tried: " + "; ".join(tried) + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, "
-                f"max_newton_iterations={self._newton_iteration_cap()}, max_substep_halvings={self.settings.max_substep_halvings}, contact "
-                f"stiffness {self.contact_stiffness:.4g} N/mm^3"
+                f"max_newton_iterations={self._newton_iteration_cap()}, "
+                f"max_substep_halvings={self.settings.max_substep_halvings}, "
+                f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
         g = self._gradient(ind)
