@@ -8,7 +8,8 @@ find where a sequence that will not finish spends its time.
 runs the sequence as one ``generate`` worker does (physics, render, labels, write into a temporary dataset folder),
 in this process. Each load sub-step prints its seconds, Newton iterations, outcome and the frame's counters so far;
 each frame its seconds, Newton iterations, sub-steps, residual (N) and Fz (N); each device CG that stops unconverged
-its reason, and each host solve its seconds;
+its reason, and each host solve its seconds; with ``--newton``, each Newton system (which Hessian, its outcome, its
+linear iterations);
 ``kill -USR1 <pid>`` prints the main thread's Python stack to stderr (``faulthandler``; its periodic dump from a
 watchdog thread crashed this process in libpython twice, so it is not used). The gel mesh comes from the
 mesh cache (``TRANSTAC_SIM_CACHE``): a mesh built anew elsewhere differs, and so do the frames (README, Determinism).
@@ -24,10 +25,52 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from transtac_sim.config import load_scene
 from transtac_sim.physics import QuasiStaticSolver, linear
+
+HESSIANS = {(1.0, False): "exact", (1.0, True): "clamped", (0.0, True): "Gauss-Newton"}
+
+
+def _trace_newton() -> None:
+    """Prints each Newton system as it is solved: which Hessian (newton.py ``_hessian_ladder``), what came of it (a
+    step, not positive definite, or a shifted step) and the linear iterations it took."""
+    hessian, solve = QuasiStaticSolver._hessian, linear.LinearSolver.solve
+    last = {}
+
+    def logged_hessian(self, ind, geometric, clamp=True):
+        last["which"] = HESSIANS.get((geometric, clamp), f"geometric {geometric}, clamp {clamp}")
+        return hessian(self, ind, geometric, clamp)
+
+    def logged_solve(self, H, rhs, definite=False, **kwargs):
+        du = solve(self, H, rhs, definite, **kwargs)
+        outcome = "not positive definite" if du is None else (f"shifted {self.last_shift:g}" if self.last_shift
+                                                                 else "step")
+        step = f", max |du| {float(np.max(np.abs(du.numpy()))):.2e} mm" if du is not None else ""
+        print(f"    Newton system, {last.get('which')} Hessian: {outcome}{step}, |g| {np.linalg.norm(rhs.numpy()):.2e} N, "
+              f"{self.last_iterations} linear iterations, rtol {kwargs.get('rtol', 0.0):.1e}", flush=True)
+        return du
+
+    move_lag, raise_stiffness = QuasiStaticSolver._move_lag, QuasiStaticSolver._raise_stiffness
+
+    def logged_move_lag(self, ind, remaining):
+        moved = move_lag(self, ind, remaining)
+        if moved:
+            print(f"    friction's lag moved (estimated remaining step {remaining:.2e} mm)", flush=True)
+        return moved
+
+    def logged_raise(self, ind, raises):
+        pen = raise_stiffness(self, ind, raises)
+        print(f"    converged at penetration {pen:.3g} mm" if pen is not None else
+              f"    contact stiffness raised to {self.contact_stiffness:.4g} N/mm^3", flush=True)
+        return pen
+
+    QuasiStaticSolver._hessian = logged_hessian
+    QuasiStaticSolver._move_lag = logged_move_lag
+    QuasiStaticSolver._raise_stiffness = logged_raise
+    linear.LinearSolver.solve = logged_solve
 
 
 def _trace_solver() -> None:
@@ -75,11 +118,14 @@ def _trace_solver() -> None:
 
 def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = typer.Option(3, min=1),
          mode: str = typer.Option("physics", help="physics or worker"),
-         linear_solver: str = typer.Option("auto", help="auto, direct or cg")) -> None:
+         linear_solver: str = typer.Option("auto", help="auto, direct or cg"),
+         newton: bool = typer.Option(False, help="also print each Newton system: its Hessian and outcome")) -> None:
     if mode not in ("physics", "worker"):
         raise typer.BadParameter(f"--mode must be physics or worker, got {mode!r}")
     faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=False)
     _trace_solver()
+    if newton:
+        _trace_newton()
     path = scene.resolve()
     loaded = load_scene(path)
     loaded = loaded.model_copy(update={"physics": loaded.physics.model_copy(update={"linear_solver": linear_solver})})

@@ -103,16 +103,20 @@ class Assembly:
             self._H_dev.nnz_sync()
             self._H = wp.sparse.bsr_copy(self._H_dev)
         parts = {}
+        hessian = {"geometric": geometric, "clamp": int(clamp), "barrier_tets": self._barrier_tets}
+        self._barrier_tets.zero_()
+        barrier = self._barrier_energy(self.u) > 0.0  # only where some det F is below the barrier's threshold
+        if barrier:  # first: it marks the tets where the barrier acts, whose clamped pressure is halved
+            barrier_qp = {"F_qp": self._F_det, "b_qp": self._b_det}
+            fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
+                            values=self._barrier_values() | barrier_qp | hessian)
         qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
         fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
-                        values=vals | qp | {"geometric": geometric, "clamp": int(clamp)})
+                        values=vals | qp | hessian)
         parts["volumetric"] = self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f,
                                              vals | qp)
-        if self._barrier_energy(self.u) > 0.0:  # only where some det F is below the barrier's threshold
-            qp = {"F_qp": self._F_det, "b_qp": self._b_det}
-            fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
-                            values=self._barrier_values() | qp | {"geometric": geometric, "clamp": int(clamp)})
-            parts["barrier"] = self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, qp)
+        if barrier:
+            parts["barrier"] = self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, barrier_qp)
         if ind.count:
             fields = {"du": self._side_trial, "v": self._side_test}
             parts["contact"] = self._assemble("contact", contact.contact_hessian_form, self._q_contact, fields,

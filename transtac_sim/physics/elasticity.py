@@ -29,8 +29,16 @@ then no load step, however small, converges. Added to E_el at the same 4 points:
 
 C2 at J_hat, so it changes nothing where every J >= J_hat (the usual case) and makes an inverted element
 unreachable from an uninverted state. Gradient kappa b'(J) cof(F) : grad v; Hessian
-kappa [b''(J) (cof F : grad du)(cof F : grad v) + geometric b'(J) dcof(F)[grad du] : grad v], with b'' >= 0;
-the clamped Hessian clamps kappa b'(J) to [-mu/sigma_max, mu/sigma_max] as it does the volumetric pressure.
+kappa [b''(J) (cof F : grad du)(cof F : grad v) + geometric b'(J) dcof(F)[grad du] : grad v], with b'' >= 0.
+
+The clamped Hessian is positive semi-definite tet by tet. With A the gradient of du, the deviatoric term gives
+mu int |A|^2 = mu sum_q w_q |A_q|^2 over the barrier's 4 check points (order 2 is exact for P2's quadratic |A|^2),
+which also bounds mu V |A_c|^2 at the volumetric term's one point (A is linear: A_c is its mean). A geometric term
+s dcof(F)[A] : A is at least -|s| sigma_max |A|^2. So each of the two clamped terms alone is covered by the
+deviatoric one, and together they are where each gets half: in a tet where the barrier acts at any check point
+(``barrier_tets``), the volumetric pressure is clamped to mu/(2 sigma_max), and kappa b'(J) always is. With both at
+mu/sigma_max the clamped Hessian had negative eigenvalues in compressed tets where the barrier acts
+(tests/test_physics_barrier.py), which is where the device CG found it not positive definite (newton.py).
 """
 
 from __future__ import annotations
@@ -129,9 +137,11 @@ def volumetric_state_form(
     clamp: int,
     F_qp: wp.array(dtype=wp.mat33d),
     p_qp: wp.array(dtype=wp.float64),
+    barrier_tets: wp.array(dtype=wp.int32),
 ):
-    """Stores F and the pressure s_h (clamped if ``clamp``) at each quadrature point, so that the Hessian's
-    assembly (which evaluates its integrand once per pair of degrees of freedom) does not repeat the SVD."""
+    """Stores F and the pressure s_h (clamped if ``clamp``: to half the bound in ``barrier_tets``, see the
+    module's docstring) at each quadrature point, so that the Hessian's assembly (which evaluates its integrand once
+    per pair of degrees of freedom) does not repeat the SVD."""
     F = deformation_gradient(fem.grad(u, s))
     mu = params[s.element_index][0]
     lam = params[s.element_index][1]
@@ -139,6 +149,8 @@ def volumetric_state_form(
     F_qp[s.qp_index] = F
     if clamp != 0:
         bound = pressure_bound(F, mu)
+        if barrier_tets[s.element_index] != 0:
+            bound = _f(0.5) * bound
         p = wp.clamp(p, -bound, bound)
     p_qp[s.qp_index] = geometric * p
 
@@ -193,16 +205,20 @@ def barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp.
 @fem.integrand
 def barrier_state_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d), stiffness: wp.float64,
                        j_hat: wp.float64, geometric: wp.float64, clamp: int, F_qp: wp.array(dtype=wp.mat33d),
-                       b_qp: wp.array(dtype=wp.vec2d)):
-    """Stores F and kappa (geometric b', b'') at each check point for ``barrier_hessian_form``; with ``clamp``
-    kappa b' is clamped like the volumetric pressure (see ``volumetric_state_form``)."""
+                       b_qp: wp.array(dtype=wp.vec2d), barrier_tets: wp.array(dtype=wp.int32)):
+    """Stores F and kappa (geometric b', b'') at each check point for ``barrier_hessian_form``, and marks the tets
+    where the barrier acts in ``barrier_tets`` (zeroed by the caller); with ``clamp`` kappa b' is clamped to
+    mu/(2 sigma_max) (see the module's docstring)."""
     F = deformation_gradient(fem.grad(u, s))
-    b = det_barrier(wp.determinant(F), j_hat)
+    J = wp.determinant(F)
+    b = det_barrier(J, j_hat)
     mu = params[s.element_index][0]
     kappa = stiffness * mu
     p = kappa * b[1]
+    if J < j_hat:
+        barrier_tets[s.element_index] = 1
     if clamp != 0:
-        bound = pressure_bound(F, mu)
+        bound = _f(0.5) * pressure_bound(F, mu)
         p = wp.clamp(p, -bound, bound)
     F_qp[s.qp_index] = F
     b_qp[s.qp_index] = wp.vec2d(geometric * p, kappa * b[2])

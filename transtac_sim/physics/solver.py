@@ -108,6 +108,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             n_det = self._q_det.total_point_count()
             self._F_det = wp.empty(n_det, dtype=wp.mat33d)
             self._b_det = wp.empty(n_det, dtype=wp.vec2d)
+            self._barrier_tets = wp.zeros(len(T), dtype=wp.int32)  # 1 where the barrier acts (assembly.py)
             n_contact = self._q_contact.total_point_count() * len(self.indenters)
             self._contact_state = contact.ContactState()
             for name, dtype in (("lag_g", wp.float64), ("lag_n", wp.vec3d), ("normal", wp.vec3d),
