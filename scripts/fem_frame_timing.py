@@ -60,10 +60,12 @@ def _sequence_setup(scene: Path, index: int):
     return setup
 
 
-def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, sequence: int | None = None) -> dict:
+def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, sequence: int | None = None,
+        friction_lag_moves: int | None = None) -> dict:
     """Solves the frames; returns the run's description and per-frame solver records."""
     setup = load_setup(scene) if sequence is None else _sequence_setup(scene, sequence)
-    physics = setup.scene.physics.model_copy(update={"degree": degree})
+    physics = setup.scene.physics.model_copy(update={"degree": degree} | (
+        {"friction_lag_moves": friction_lag_moves} if friction_lag_moves is not None else {}))
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     if trajectory_from is not None:
         setup = _with_trajectories(setup, trajectory_from)
@@ -78,10 +80,17 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     QuasiStaticSolver.solve_frame = recording
     what = f"{scene}" + (f" with the trajectories of {trajectory_from}" if trajectory_from else "") + (
         f" sequence {sequence}" if sequence is not None else "")
-    print(f"{what} on a {os.cpu_count()}-core CPU, P{degree}, {frames} frame(s)")
+    device = setup.scene.physics.device
+    if device == "auto":
+        import warp as wp
+
+        device = "cuda" if wp.is_cuda_available() else "cpu"
+    print(f"{what} on a {os.cpu_count()}-core CPU (physics device {device}), P{degree}, {frames} frame(s)")
     clock, t0, load0 = StageClock(), time.perf_counter(), os.getloadavg()[0]
+    forces = []
     try:
         for f in simulate_frames(setup, frames, clock):
+            forces.append([x.tolist() for x in f.forces_n])
             r = records[-1] if records else {}
             print(f"frame {f.frame}: {f.solver['seconds']:.1f} s, {f.solver['iterations']} Newton iterations, "
                   f"{r.get('backtracks', '-')} line-search halvings, {r.get('stiffness_raises', '-')} stiffness raises, "
@@ -92,9 +101,10 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     finally:
         QuasiStaticSolver.solve_frame = solve_frame
     print({k: round(v, 2) for k, v in clock.seconds.items()})
-    return {"scene": what, "degree": degree, "frames": frames, "load_average": [load0, os.getloadavg()[0]],
+    return {"scene": what, "device": device, "degree": degree, "frames": frames, "load_average": [load0, os.getloadavg()[0]],
             "iterations": [r["iterations"] for r in records], "seconds": [round(r["seconds"], 2) for r in records],
-            "backtracks": [r.get("backtracks") for r in records], "lag_moves": [r.get("lag_updates") for r in records]}
+            "backtracks": [r.get("backtracks") for r in records], "lag_moves": [r.get("lag_updates") for r in records],
+            "forces_n": forces}
 
 
 def _stored_runs() -> dict:
@@ -142,22 +152,20 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
          max_newton_iterations: int | None = typer.Option(None, min=1, help="replace SolverSettings' "
                                                           "max_newton_iterations (per sub-step)"),
-         friction_lag_iterations: int | None = typer.Option(None, min=0, help="replace SolverSettings' "
-                                                            "friction_lag_iterations (per step)")) -> None:
-    overrides = {k: v for k, v in (("max_newton_iterations", max_newton_iterations),
-                                   ("friction_lag_iterations", friction_lag_iterations)) if v is not None}
-    if overrides:
+         friction_lag_moves: int | None = typer.Option(None, min=1, help="replace the scene's [physics] "
+                                                       "friction_lag_moves (per step)")) -> None:
+    if max_newton_iterations is not None:
         import functools
 
         from transtac_sim import physics  # simulation.py imports SolverSettings from here when it solves
 
-        physics.SolverSettings = functools.partial(physics.SolverSettings, **overrides)
-    result = run(scene, degree, frames, trajectory_from, sequence)
+        physics.SolverSettings = functools.partial(physics.SolverSettings, max_newton_iterations=max_newton_iterations)
+    result = run(scene, degree, frames, trajectory_from, sequence, friction_lag_moves)
     if benchmarks:
         from benchmarks_md import update_section
 
         runs = _stored_runs()
-        runs[f"{label or 'run'}|{result['scene']}"] = result
+        runs[f"{label or 'run'}|{result['scene']}"] = {k: v for k, v in result.items() if k != "forces_n"}
         update_section(BENCHMARKS, SECTION, _markdown(runs))
         print(f"BENCHMARKS.md: {SECTION} updated")
 

@@ -78,15 +78,17 @@ def test_unconvergeable_step_raises_with_context():
     np.testing.assert_array_equal(solver.nodal_displacement(), before)  # nothing half-solved is kept
 
 
-def _sphere_on_block(friction, poisson=0.45):
+def _sphere_on_block(friction, poisson=0.45, settings: SolverSettings = SolverSettings()):
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), friction)
-    return V, QuasiStaticSolver(V, T, ElasticMaterial(0.5, poisson), [sphere])
+    return V, QuasiStaticSolver(V, T, ElasticMaterial(0.5, poisson), [sphere], settings)
 
 
-@pytest.mark.parametrize("friction", [0.0, 0.5])
-def test_slide_friction_force_and_marker_drag(friction):
-    V, solver = _sphere_on_block(friction)
+@pytest.mark.parametrize(("friction", "lag_moves"), [(0.0, 4), (0.5, 4), (0.5, 1)])
+def test_slide_friction_force_and_marker_drag(friction, lag_moves):
+    """Coulomb's law once the sphere slides, with friction's lag moved up to 4 times per step (the default) or once
+    (``friction_lag_moves``, as scenes/train_random.toml)."""
+    V, solver = _sphere_on_block(friction, settings=SolverSettings(friction_lag_moves=lag_moves))
     P = _lift(2.0 + 2.0 + 1e-3)
     solver.start([P])
     P = _lift(2.0 + 2.0 - 0.3)
@@ -100,6 +102,7 @@ def test_slide_friction_force_and_marker_drag(friction):
         results.append(solver.solve_frame([P]))
     last = results[-1]
     assert all(r.record.converged and r.record.min_det_f > 0 for r in results)
+    assert all(r.record.lag_updates <= lag_moves * r.record.substeps for r in results)
     fx = last.forces_n[0, 0]
     top = (np.abs(V[:, 2] - 2.0) < 1e-9) & (np.linalg.norm(V[:, :2], axis=1) < 0.3)
     drag = last.displacement_mm[top, 0].mean()

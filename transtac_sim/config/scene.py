@@ -76,6 +76,11 @@ class Physics(_Strict):
     friction_slip_mm: float = Field(
         default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point creeps up to this far per "
         "frame before friction reaches mu times the pressure (0.01: stricter sticking, about 1.5x the Newton iterations)")
+    friction_lag_moves: int = Field(
+        default=4, ge=1, le=50, description="friction's normal pressure and tangent plane are lagged and moved to "
+        "the current state at most this often per load step: 4 matches a 12-move solution's friction forces within "
+        "0.5 %; 1 takes a third fewer Newton iterations on press_slide, friction within 2 % there but 16 % on a coarse "
+        "mesh (BENCHMARKS.md fem_friction_lag_moves, fem_friction_lag_moves_gpu)")
     linear_solver: Literal["auto", "direct", "cg"] = Field(
         default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
         "auto: cg on a GPU, else direct")

@@ -73,7 +73,7 @@ class NewtonSteps:
         Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag
         move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
         when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
-        was moved ``friction_lag_iterations`` times): after a full step (alpha = 1) that step is estimated from
+        was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
         the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation),
         otherwise it is the full Newton step itself. The device CG solves each system to the forcing
         tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
@@ -96,7 +96,7 @@ class NewtonSteps:
             g_first = g_first or g_norm
             estimate = self._linear.solve_last(-g_np, exact_below=10.0 * tol) if full_step else None
             remaining = float(np.max(np.abs(estimate))) if estimate is not None else np.inf
-            if friction and lags < s.friction_lag_iterations and self._move_lag(ind, remaining):
+            if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
                 lags += 1
                 continue
             if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
@@ -156,7 +156,7 @@ class NewtonSteps:
                                                   if inverted else "")
                     return False, iterations, why, 0.0
                 wp.copy(self.u.dof_values, self._u_try.dof_values)
-                if friction and lags < s.friction_lag_iterations and self._move_lag(ind, 0.0):
+                if friction and lags < s.friction_lag_moves and self._move_lag(ind, 0.0):
                     lags, full_step = lags + 1, True
                     continue
                 pen = self._raise_stiffness(ind, raises)
