@@ -1,7 +1,7 @@
 """Labelled stereo frames per hour of `transtac-sim generate`, and how the time splits over the stages.
 
     .venv/bin/python scripts/bench_generate.py [--scene scenes/train_random.toml] [--sequences 2] [--frames 4]
-        [--workers K] [--executor local|ray] [--md-out FILE]
+        [--workers K] [--mps] [--executor local|ray] [--md-out FILE]
 
 On a one-GPU machine ``--workers K`` runs K sequences at once on the GPU (local processes). After each
 sequence it prints the frames processed so far and their rate, so that a run cut short still says something.
@@ -42,6 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
          workers: int = typer.Option(1, min=1),
+         mps: bool = typer.Option(False, help="the workers share the GPU through CUDA MPS (generate --mps)"),
          executor: str = typer.Option("local", help="local, or ray (on a machine with GPUs: one sequence per GPU)"),
          md_out: Path | None = typer.Option(None, help="also write the section's markdown to this file"),
          write: bool = typer.Option(True, help="update BENCHMARKS.md"),
@@ -66,7 +67,7 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
             print(f"[{t:.0f} s] {done}/{total} frames, {3600 * done / t:.0f} frames per hour so far", flush=True)
 
         report = generate(scene, root, frames=frames, sequences=sequences, workers=workers,
-                          executor=executor, on_frames=progress)
+                          executor=executor, on_frames=progress, mps=mps)
         wall = time.perf_counter() - t0
         manifest = json.loads((root / "manifest.json").read_text())
     from transtac_sim.rendering.mitsuba_env import select_variant
@@ -85,7 +86,8 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         f"{', '.join(manifest['scene']['outputs']['illuminations'])}) in {wall:.1f} s wall{resumed}: "
         f"**{3600 * n / wall:.0f} frames per hour**; {len(report.frames_failed)} of "
         f"{len(manifest['samples'])} frames of {sequences} sequences failed."
-        + (f" Executor {executor}, {workers} worker(s)" + (f" on the GPUs with Ray ids {', '.join(report.gpus_used)}"
+        + (f" Executor {executor}, {workers} worker(s)" + (" under CUDA MPS" if mps else "")
+           + (f" on the GPUs with Ray ids {', '.join(report.gpus_used)}"
                                                            if report.gpus_used else "") + "."),
         "",
         "| stage | seconds | seconds per frame | share of the stages' seconds |",

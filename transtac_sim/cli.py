@@ -142,16 +142,19 @@ def generate(scene: Path = SceneArg,
              seed: int = typer.Option(None, min=0, help="replace the scene's seed"),
              sequences: int = typer.Option(None, min=1, help="replace the scene's sequence count"),
              workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray tasks: with "
-                                                         "GPUs, workers / GPUs per GPU); 2 per GPU overlap rendering "
-                                                         "with physics (1.38x on an H100), more are slower"),
+                                                         "GPUs, workers / GPUs per GPU); on one H100 8 with --mps "
+                                                         "gave the most frames per hour (BENCHMARKS.md)"),
              executor: str = typer.Option("local", help="local | ray"),
              address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)"),
              retry_failed: bool = typer.Option(False, help="on resume, solve again the sequences whose frame failed "
-                                                           "in an earlier run (default: keep those failures)")) -> None:
+                                                           "in an earlier run (default: keep those failures)"),
+             mps: bool = typer.Option(False, help="run the local workers under CUDA MPS (started and stopped by this "
+                                                  "command), so that their GPU kernels run side by side")) -> None:
     """Generate a labelled stereo dataset (DESIGN.md section 4); re-running resumes an interrupted run."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from transtac_sim.dataset.generate import generate as run
+    from transtac_sim.gpu_sharing import MpsUnavailable
 
     if executor not in ("local", "ray"):
         console.print(f"[bold red]error:[/] --executor {executor!r}: allowed local, ray", soft_wrap=True)
@@ -167,8 +170,9 @@ def generate(scene: Path = SceneArg,
 
         try:
             report = run(scene, out, frames=frames, seed=seed, sequences=sequences, workers=workers,
-                         executor=executor, address=address, on_frames=on_frames, retry_failed=retry_failed)
-        except ConfigError as e:
+                         executor=executor, address=address, on_frames=on_frames, retry_failed=retry_failed,
+                         mps=mps)
+        except (ConfigError, MpsUnavailable) as e:
             console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
             raise typer.Exit(2) from None
     tab = Table(title=f"dataset {report.root}", show_header=False)

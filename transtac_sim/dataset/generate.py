@@ -15,6 +15,7 @@ import multiprocessing
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset.coco import write_coco
 from transtac_sim.dataset.manifest import build_manifest, read_manifest, write_manifest
 from transtac_sim.executors import ray_tasks, start_ray
+from transtac_sim.gpu_sharing import MpsUnavailable, mps_server
 from transtac_sim.writer.atomic import write_json
 
 
@@ -59,8 +61,8 @@ def _run_local(tasks: list[SequenceTask], workers: int) -> Iterator[list[dict]]:
         for t in tasks:
             yield _run_task(t)
         return
-    # spawned, not forked: a forked CUDA context is unusable. Several workers on one GPU each open a context there;
-    # on an H100 six were slower than one (BENCHMARKS.md generate_train_random_gpu_workers)
+    # spawned, not forked: a forked CUDA context is unusable. Several workers on one GPU each open a context there,
+    # time-sliced unless they run under MPS (gpu_sharing.py)
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         for fut in as_completed([pool.submit(_run_task, t) for t in tasks]):
             yield fut.result()
@@ -108,11 +110,16 @@ def ray_gpu_share(gpus: float, workers: int) -> float:
 
 def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = None, seed: int | None = None,
              sequences: int | None = None, workers: int = 1, executor: str = "local", address: str | None = None,
-             on_frames: Callable[[int, int], None] | None = None, retry_failed: bool = False) -> GenerateReport:
+             on_frames: Callable[[int, int], None] | None = None, retry_failed: bool = False,
+             mps: bool = False) -> GenerateReport:
     """Generate (or resume) the dataset of ``scene_path`` in ``out``; ``on_frames(done, total)`` reports
     progress after each sequence. A resumed run keeps the failures an earlier run recorded (their sequences are
-    not solved again) unless ``retry_failed``."""
+    not solved again) unless ``retry_failed``. ``mps``: the workers share the GPU through CUDA MPS
+    (gpu_sharing.py; raises ``MpsUnavailable`` where it cannot be started)."""
     t0 = time.perf_counter()
+    if mps and executor != "local":
+        raise MpsUnavailable("--mps works with --executor local: a Ray cluster's workers outlive this command, so "
+                             "start the MPS daemon (nvidia-cuda-mps-control -d) on its GPU nodes yourself")
     scene_path = Path(scene_path).resolve()
     scene = load_scene(scene_path)
     upd = {k: v for k, v in (("seed", seed), ("sequences", sequences)) if v is not None}
@@ -126,21 +133,23 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
     if old is not None and old.get("scene") != resolved:
         raise ConfigError(root / "manifest.json", [("scene", "this folder holds a dataset of another scene, seed or "
                                                     "frame count; choose another --out (nothing was changed)")])
-    root.mkdir(parents=True, exist_ok=True)
-    from transtac_sim.scene_setup import build_setup
+    # MPS is started before anything is written: where it cannot be, the folder is left as it was
+    with mps_server() if mps else nullcontext():
+        root.mkdir(parents=True, exist_ok=True)
+        from transtac_sim.scene_setup import build_setup
 
-    base = build_setup(scene, scene_path)
-    write_json(root / "calibration.json", base.sensor.calibration_json())
-    tasks = [SequenceTask(str(scene_path), json.dumps(resolved), i, str(root), retry_failed)
-             for i in range(scene.sequences)]
-    results: list[dict] = []
-    total = len(tasks) * limit
-    gpus_used: set[str] = set()
-    runs = _run_ray(tasks, address, workers, gpus_used) if executor == "ray" else _run_local(tasks, workers)
-    for frames_of_sequence in runs:
-        results += frames_of_sequence
-        if on_frames:
-            on_frames(len(results), total)
+        base = build_setup(scene, scene_path)
+        write_json(root / "calibration.json", base.sensor.calibration_json())
+        tasks = [SequenceTask(str(scene_path), json.dumps(resolved), i, str(root), retry_failed)
+                 for i in range(scene.sequences)]
+        results: list[dict] = []
+        total = len(tasks) * limit
+        gpus_used: set[str] = set()
+        runs = _run_ray(tasks, address, workers, gpus_used) if executor == "ray" else _run_local(tasks, workers)
+        for frames_of_sequence in runs:
+            results += frames_of_sequence
+            if on_frames:
+                on_frames(len(results), total)
     timings: dict[str, float] = {}
     stages: set[str] = set()
     for r in results:
