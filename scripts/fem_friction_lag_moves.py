@@ -9,7 +9,8 @@ iterations; fewer moves leave the friction force further from the fixed point of
 frames with each count in ``--moves`` (default: the tiny test mesh with the press-and-slide motion, friction 0.5)
 and reports, per count, the Newton iterations and seconds of the frames and the largest difference of the
 tangential (friction) and normal force from the run with the most moves, on the frames where the indenter slides.
-``--benchmarks`` writes the table into BENCHMARKS.md (section ``fem_friction_lag_moves``; ``SECTION`` on the GPU).
+``--benchmarks`` writes the table into BENCHMARKS.md, section ``--section`` (default ``fem_friction_lag_moves``, this
+CPU's; the GPU's is ``fem_friction_lag_moves_gpu``).
 """
 
 from __future__ import annotations
@@ -44,7 +45,9 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press.
          section: str = typer.Option("fem_friction_lag_moves"),
          md_out: Path | None = typer.Option(None, help="also write the table to this file")) -> None:
     counts = sorted(int(m) for m in moves.split(","))
-    run(scene, 2, 1, trajectory_from)  # compiles the kernels, so that no count's seconds include it
+    # a first frame compiles the elastic and contact kernels; it has no friction, so on a machine without Warp's kernel
+    # cache the first count's seconds still include compiling the friction kernels
+    run(scene, 2, 1, trajectory_from)
     runs = {m: run(scene, 2, frames, trajectory_from, friction_lag_moves=m) for m in counts}
     ref = np.array([f[0] for f in runs[counts[-1]]["forces_n"]])
     friction = np.linalg.norm(ref[:, :2], axis=1)
