@@ -138,3 +138,21 @@ def test_refuses_to_mix_datasets(reference: Path):
 def test_ray_gpu_share(gpus: int, workers: int, share: float):
     """Each GPU holds at most ceil(workers / gpus) sequence tasks, and all GPUs are used."""
     assert ray_gpu_share(gpus, workers) == pytest.approx(share)
+
+
+def _thread_counts(_task=None) -> tuple[int, list[int]]:
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    return cv2.getNumThreads(), [pool["num_threads"] for pool in threadpool_info()]
+
+
+def test_local_workers_share_the_cores():
+    """A local worker's thread pools (BLAS, OpenMP, OpenCV) get its share of the cores (K workers on C cores:
+    C // K threads each, at least 1), as ``local_tasks`` starts them for ``generate`` and ``sweep``."""
+    from transtac_sim.executors import local_tasks
+
+    workers = 2 * (os.cpu_count() or 1)  # more workers than cores: one thread each
+    for opencv, pools in local_tasks(_thread_counts, [None] * workers, workers, spawn=True):
+        assert opencv == 1
+        assert pools and all(n == 1 for n in pools)

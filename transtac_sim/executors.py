@@ -1,8 +1,39 @@
-"""Independent tasks on Ray (``generate`` sequences, ``sweep`` points): results as the tasks finish."""
+"""Independent tasks (``generate`` sequences, ``sweep`` points) in local worker processes or on Ray: results as the
+tasks finish."""
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+
+
+def limit_threads(threads: int) -> None:
+    """A local worker's start: each thread pool of the process (BLAS, OpenMP, OpenCV's) gets ``threads`` threads, so
+    that K workers on C cores run about C threads in their CPU stages, not K x C that wait on each other (on an H100
+    machine with 16 cores, 8 ``generate`` workers made 1.63x the frames per hour with it, BENCHMARKS.md
+    ``generate_train_random_gpu_worker_threads``)."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=threads)
+    cv2.setNumThreads(threads)
+
+
+def local_tasks(fn: Callable, tasks: list, workers: int, spawn: bool = False) -> Iterator:
+    """``fn(task)`` for each task, in order of completion: inline with one worker, else in ``workers`` processes
+    (``spawn``: started fresh rather than forked, which a process holding a CUDA context needs) whose thread pools
+    share the cores (``limit_threads``)."""
+    if workers <= 1:
+        yield from map(fn, tasks)
+        return
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    context = multiprocessing.get_context("spawn") if spawn else None
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=limit_threads,
+                             initargs=(threads,)) as pool:
+        for fut in as_completed([pool.submit(fn, t) for t in tasks]):
+            yield fut.result()
 
 
 def start_ray(address: str | None, workers: int):

@@ -11,10 +11,8 @@ uninterrupted run, wall-clock fields aside.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +20,7 @@ from pathlib import Path
 from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset.coco import write_coco
 from transtac_sim.dataset.manifest import build_manifest, read_manifest, write_manifest
-from transtac_sim.executors import ray_tasks, start_ray
+from transtac_sim.executors import local_tasks, ray_tasks, start_ray
 from transtac_sim.gpu_sharing import MpsUnavailable, mps_server
 from transtac_sim.writer.atomic import write_json
 
@@ -57,15 +55,9 @@ def _run_task(task: SequenceTask) -> list[dict]:
 
 
 def _run_local(tasks: list[SequenceTask], workers: int) -> Iterator[list[dict]]:
-    if workers <= 1:
-        for t in tasks:
-            yield _run_task(t)
-        return
     # spawned, not forked: a forked CUDA context is unusable. Several workers on one GPU each open a context there,
     # time-sliced unless they run under MPS (gpu_sharing.py)
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        for fut in as_completed([pool.submit(_run_task, t) for t in tasks]):
-            yield fut.result()
+    return local_tasks(_run_task, tasks, workers, spawn=True)
 
 
 def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int, gpus_used: set[str]) -> Iterator[list[dict]]:

@@ -27,12 +27,11 @@ import json
 import time
 import traceback
 from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from transtac_sim.config import ConfigError, load_hardware
-from transtac_sim.executors import ray_tasks
+from transtac_sim.executors import local_tasks, ray_tasks
 from transtac_sim.sweep.config import (
     LAYOUT_KEYS,
     PIPELINE_KEYS,
@@ -311,13 +310,7 @@ def _map(fn, tasks: list, executor: str, workers: int, address: str | None) -> I
     if executor == "ray":
         yield from ray_tasks(fn, tasks, address, workers)
         return
-    if workers <= 1:
-        for t in tasks:
-            yield fn(t)
-        return
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        for fut in as_completed([pool.submit(fn, t) for t in tasks]):
-            yield fut.result()
+    yield from local_tasks(fn, tasks, workers)
 
 
 # -- the sweep ---------------------------------------------------------------------------------------------
