@@ -30,3 +30,16 @@ def test_info_and_bad_config_exit_code(repo_copy):
     bad = edit(repo_copy / "scenes/press_slide.toml", "friction = 0.5", "friction = -1")
     r = runner.invoke(app, ["info", str(bad)])
     assert r.exit_code == 2 and "indenters[0].friction" in r.output
+
+
+def test_generate_mps_without_nvidia_driver_is_a_clear_error(tmp_path, monkeypatch):
+    """`generate --mps` on a machine without NVIDIA's MPS control program: exit 2, what is missing, nothing written."""
+    empty = tmp_path / "bin"
+    empty.mkdir()
+    monkeypatch.setenv("PATH", str(empty))
+    out = tmp_path / "ds"
+    r = runner.invoke(app, ["generate", str(REPO / "scenes/quickstart.toml"), "--out", str(out), "--frames", "1",
+                            "--workers", "2", "--mps"])
+    assert r.exit_code == 2, r.output
+    assert "nvidia-cuda-mps-control is not on PATH" in " ".join(r.output.split())
+    assert not out.exists()
