@@ -87,8 +87,7 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         f"**{3600 * n / wall:.0f} frames per hour**; {len(report.frames_failed)} of "
         f"{len(manifest['samples'])} frames of {sequences} sequences failed."
         + (f" Executor {executor}, {workers} worker(s)" + (" under CUDA MPS" if mps else "")
-           + (f" on the GPUs with Ray ids {', '.join(report.gpus_used)}"
-                                                           if report.gpus_used else "") + "."),
+           + (f" on the GPUs with Ray ids {', '.join(report.gpus_used)}" if report.gpus_used else "") + "."),
         "",
         "| stage | seconds | seconds per frame | share of the stages' seconds |",
         "| --- | --- | --- | --- |",

@@ -39,11 +39,8 @@ class SolverSettings:
     # switch is 5x less stiff, which cuts Newton's iterations on frictional frames by a third to a half
     # (scripts/fem_frame_timing.py on tests/fixtures/tiny_press.toml: 12, 15 -> 8, 9), forces within 2 %
     slip_eps_mm: float = 5.0e-2
-    # per step: friction's lag (normal pressure and tangent plane) moved to the current u at most this often. Each
-    # move costs Newton a few iterations; 4 moves match a 12-move solution's friction forces within 0.5 %; 1 move
-    # takes 32 % fewer Newton iterations on press_slide with friction within 2 % there, but 16 % off on the coarse
-    # tiny mesh (BENCHMARKS.md ``fem_friction_lag_moves``, ``fem_friction_lag_moves_gpu``); scenes choose it with
-    # [physics] friction_lag_moves
+    # per step: friction's lag (normal pressure and tangent plane) moved to the current u at most this often; scenes
+    # set it with [physics] friction_lag_moves, whose description (config/scene.py) gives the measured trade-off
     friction_lag_moves: int = 4
     contact_quadrature_order: int | None = None  # None: 2 * degree
     fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
