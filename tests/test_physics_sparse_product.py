@@ -1,6 +1,7 @@
 """The device CG's matrix-vector product (physics/sparse_product.py) against scipy, its projection of the fixed
 degrees of freedom (physics/linear.py) against warp.fem's, and its last resort (a shifted system) against scipy's
-solve, on a real Newton Hessian."""
+solve, on a real Newton Hessian; the deviatoric term taken from its constant Hessian (assembly.py) against its
+integrals; the direct path's free-dof matrix and its kept factorisation's PCG (linear.py)."""
 
 import numpy as np
 import scipy.sparse as sp
@@ -9,9 +10,16 @@ import trimesh
 import warp as wp
 import warp.fem as fem
 
-from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter
+from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, elasticity
 from transtac_sim.physics.box_mesh import gel_block
-from transtac_sim.physics.linear import SHIFTS, LinearSolver, _project_fixed_blocks, bsr_to_scipy
+from transtac_sim.physics.linear import (
+    PCG_RATE_CHECK,
+    SHIFTS,
+    LinearSolver,
+    _pcg,
+    _project_fixed_blocks,
+    bsr_to_scipy,
+)
 from transtac_sim.physics.sparse_product import block_row_operator
 
 
@@ -111,3 +119,63 @@ def test_device_last_resort_solves_the_shifted_system():
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-10) is None
     linear.cg_maxiter = 1
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=False, rtol=1e-10) is None
+
+
+def test_deviatoric_energy_and_gradient_are_its_quadratic_form():
+    """assembly.py takes the deviatoric term's energy and gradient from its constant Hessian, c . u + u . H_dev u / 2
+    and c + H_dev u: they equal the term's integrals (order 2, exact for P2) at a displacement with contact."""
+    solver, _ = _pressed_solver()
+    u = solver.u.dof_values.numpy()
+    assert np.abs(u).max() > 0.1  # the pressed state
+    H_dev, c, _ = solver._deviatoric()
+    H, c = bsr_to_scipy(H_dev), c.numpy().reshape(-1)
+    vals = {"params": solver._params}
+    energy = fem.integrate(elasticity.deviatoric_energy_form, quadrature=solver._q_dev, fields={"u": solver.u},
+                           values=vals)
+    gradient = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=solver._q_dev,
+                             fields={"u": solver.u, "v": solver._test}, values=vals, output_dtype=wp.vec3d).numpy()
+    x = u.reshape(-1)
+    np.testing.assert_allclose(c @ x + 0.5 * x @ (H @ x), energy, rtol=1e-12)
+    np.testing.assert_allclose(c + H @ x, gradient.reshape(-1), rtol=0, atol=1e-12 * np.abs(gradient).max())
+
+
+def test_free_matrix_gathers_each_new_hessian():
+    """The direct path's free-dof matrix (linear.py ``_free_matrix``: a gather map made on the first matrix) equals
+    scipy's slicing of each Hessian, also of one assembled later with other values."""
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("direct", solver._fixed_nodes, solver.device)
+    for geometric in (1.0, 0.0):
+        H = solver._hessian(ind, geometric, False)
+        expected = bsr_to_scipy(H).tocsr()[linear._free][:, linear._free]
+        A = linear._free_matrix(H)
+        assert A.shape == expected.shape and abs(A - expected).max() == 0.0
+    assert linear._free_map is not None
+
+
+def test_kept_factorisation_pcg_gives_up_early_where_it_would_not_converge():
+    """``_pcg`` with a poor preconditioner (the factorisation of another matrix) stops before its cap where its rate
+    so far cannot reach the tolerance in time, and converges with a good one."""
+    rng = np.random.default_rng(0)
+    n = 400
+    L = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n)).tocsc()
+    A = (L + sp.diags(rng.uniform(0.01, 100.0, n))).tocsc()  # badly scaled: L's factor is a poor preconditioner
+    b = rng.standard_normal(n)
+    x, iterations = _pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20)
+    assert x is None and PCG_RATE_CHECK <= iterations < 20
+    x, iterations = _pcg(A, b, spla.factorized(A), 1e-6, 20)
+    assert x is not None and iterations <= 2 and np.linalg.norm(A @ x - b) <= 1e-6 * np.linalg.norm(b)
+
+
+def test_contact_outside_the_indenters_box_makes_no_query():
+    """contact.py skips the mesh query where a point lies outside the indenter's local bounding box: the contact
+    energy, gradient and largest penetration equal those with a box that contains every point (the query everywhere)."""
+    solver, ind = _pressed_solver()
+    everywhere = solver._indenter_struct([solver.poses[0]], [solver.poses[0]])
+    everywhere.box_lo = wp.array([[-1e9, -1e9, -1e9]], dtype=wp.vec3d)
+    everywhere.box_hi = wp.array([[1e9, 1e9, 1e9]], dtype=wp.vec3d)
+    lo, hi = ind.box_lo.numpy()[0], ind.box_hi.numpy()[0]
+    assert np.all(hi - lo < 4.1) and np.all(hi - lo > 3.9)  # the 2 mm sphere's box
+    pen = solver._max_penetration(ind)
+    assert pen > 0.0 and pen == solver._max_penetration(everywhere)
+    assert solver._energy(solver.u, ind) == solver._energy(solver.u, everywhere)
+    np.testing.assert_array_equal(solver._gradient(ind).numpy(), solver._gradient(everywhere).numpy())

@@ -4,7 +4,8 @@
   rows/columns only (see ``_factorise``). Fastest on the CPU for the mesh sizes used here. The factorisation
   is kept: later Newton steps are solved by conjugate gradients preconditioned with it (a few iterations while
   the Hessian has changed little) and the matrix is factorised again only when that does not converge in
-  ``reuse_max_iterations``. ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
+  ``reuse_max_iterations`` (or its rate shows by iteration ``PCG_RATE_CHECK`` that it will not). The numeric
+  factorisation runs on the BLAS threads the process has (the solves on one: see ``_solve_direct``). ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
   finds the matrix is not positive definite (Newton then takes the clamped Hessian, see newton.py).
 - ``"cg"``: conjugate gradients with a block-Jacobi preconditioner on the solver's device (the GPU path), stopping
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
@@ -163,16 +164,25 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.add.reduce(a * b))
 
 
+#: ``_pcg`` gives up from this iteration on where its mean rate so far would need over 1.5 x its iteration cap
+PCG_RATE_CHECK = 6
+
+
 def _pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int) -> tuple[np.ndarray | None, int]:
     """Conjugate gradients preconditioned by ``M`` (a solve with an earlier factorisation), from x = 0;
-    (x, iterations) once |b - A x| <= rtol |b|, (None, maxiter) if not within ``maxiter`` iterations or if A
-    is not positive definite along a search direction."""
+    (x, iterations) once |b - A x| <= rtol |b|, (None, iterations) if not within ``maxiter`` iterations, if A
+    is not positive definite along a search direction, or, from iteration ``PCG_RATE_CHECK`` on, where the mean
+    residual reduction per iteration so far, (|r_k| / |b|)^(1/k), would need more than 1.5 ``maxiter`` iterations to
+    reach rtol. The caller then factorises the matrix anew; on the tiny press fixture (2-core CPU) the kept
+    factorisation's PCG failed in 7 of 18 Newton systems, after its whole cap of 20 iterations (6 ms each), and 6 of
+    the 7 showed it by iteration 6 (|r| still 0.1-0.3 |b|), while every PCG that converged was then below 0.03 |b|."""
     x = np.zeros_like(b)
     r = b.copy()
     z = M(r)
     p = z.copy()
     rz = _dot(r, z)
-    stop = rtol * np.sqrt(_dot(b, b))
+    b_norm = np.sqrt(_dot(b, b))
+    stop = rtol * b_norm
     for k in range(1, maxiter + 1):
         Ap = A @ p
         pAp = _dot(p, Ap)
@@ -181,8 +191,11 @@ def _pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int) -> tuple
         alpha = rz / pAp
         x += alpha * p
         r -= alpha * Ap
-        if np.sqrt(_dot(r, r)) <= stop:
+        r_norm = np.sqrt(_dot(r, r))
+        if r_norm <= stop:
             return (x, k) if np.all(np.isfinite(x)) else (None, k)
+        if k >= PCG_RATE_CHECK and not k * np.log(rtol) / np.log(min(r_norm / b_norm, 1.0 - 1e-12)) <= 1.5 * maxiter:
+            return None, k
         z = M(r)
         rz_new = _dot(r, z)
         p = z + (rz_new / rz) * p
@@ -214,6 +227,7 @@ class LinearSolver:
         self.not_definite = 0  # device solves stopped because the matrix is not positive definite
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
+        self._free_map: tuple | None = None  # (H's block columns, gather, CSC indices, CSC indptr): ``_free_matrix``
         self._analysed: tuple[sp.csc_matrix, object] | None = None  # (pattern, CHOLMOD analysis of it)
         # the host path's BLAS (numpy's, scipy's and CHOLMOD's OpenBLAS) held to one thread: see ``_solve_direct``
         self._blas: ThreadpoolController | None = None  # made on the first host solve
@@ -263,16 +277,18 @@ class LinearSolver:
         """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,
         scipy's, CHOLMOD's) spin-wait against each other and the next Warp kernel on few cores; on the 2-core CPU
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
-        against 38 ms on one thread, and the process 10 s of system time in 15 s."""
-        A = bsr_to_scipy(H)[self._free][:, self._free].tocsc()
+        against 38 ms on one thread, and the process 10 s of system time in 15 s. The numeric factorisation alone
+        takes the process's BLAS threads (as found on the first solve: all cores, or a ``generate`` worker's share):
+        on the 2-core CPU 117 ms with 2 threads against 181 ms with one (13.7k dofs)."""
+        A = self._free_matrix(H)
         cholmod = _cholmod()  # loaded before the BLAS controller below is made, so that it finds CHOLMOD's OpenBLAS
         if self._analysed is None and cholmod is not None:  # on every stored entry, zero or not: the elements'
             pattern = _pattern(A)  # sparsity, which every later matrix shares
             self._analysed = (pattern, cholmod.analyze(pattern))
-        A.eliminate_zeros()  # e.g. the off-diagonal entries of the blocks only the deviatoric part fills
         b = rhs.numpy().reshape(-1)[self._free]
         if self._blas is None:
             self._blas = ThreadpoolController()
+            self._factor_threads = min(lib["num_threads"] for lib in self._blas.select(user_api="blas").info())
         with self._blas.limit(limits=1, user_api="blas"):
             x_free = self._solve_free(A, b, definite)
         if x_free is None:
@@ -282,13 +298,33 @@ class LinearSolver:
         x[self._free] = x_free
         return wp.array(x.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
 
+    def _free_matrix(self, H: BsrMatrix) -> sp.csc_matrix:
+        """H's free rows and columns as a CSC matrix (every stored entry, zero or not). The first call for a sparsity
+        finds where each of H's stored values goes (a matrix of their indices taken through the conversion and the
+        slicing); later calls, the same sparsity (assembly.py keeps it), only gather the values: 2 ms instead of 20-90 ms
+        of conversion, slicing and sorting per solve on the 2-core CPU (13.7k dofs)."""
+        nnz = int(H.offsets.numpy()[-1])
+        columns = H.columns.numpy()[:nnz]
+        cached = self._free_map
+        if cached is None or len(cached[0]) != len(columns) or not np.array_equal(cached[0], columns):
+            index = sp.bsr_matrix((np.arange(1.0, 9 * nnz + 1.0).reshape(nnz, 3, 3), columns, H.offsets.numpy()),
+                                  shape=H.shape)
+            picked = index.tocsr()[self._free][:, self._free].tocsc()
+            picked.sort_indices()
+            cached = self._free_map = (columns.copy(), picked.data.astype(np.int64) - 1, picked.indices, picked.indptr)
+            self._analysed = None  # made again for this sparsity
+        _, gather, indices, indptr = cached
+        data = H.values.numpy().reshape(-1)[gather]
+        return sp.csc_matrix((data, indices, indptr), shape=(len(self._free), len(self._free)))
+
     def _solve_free(self, A: sp.csc_matrix, b: np.ndarray, definite: bool = False) -> np.ndarray | None:
         if self._lu is not None and self._lu.shape == A.shape:
             x, iterations = _pcg(A, b, self._lu.solve, self.reuse_rtol, self.reuse_max_iterations)
             if x is not None:
                 self.last_iterations = iterations
                 return x
-        factor = _factorise(A, definite, self._analysis(A))
+        with self._blas.limit(limits=self._factor_threads, user_api="blas"):
+            factor = _factorise(A, definite, self._analysis())
         self.factorisations += 1
         if factor is None:
             return None
@@ -296,17 +332,10 @@ class LinearSolver:
         self.last_iterations = 1
         return self._lu.solve(b)
 
-    def _analysis(self, A: sp.csc_matrix):
-        """CHOLMOD's symbolic analysis of a pattern that contains A's (None without CHOLMOD): the one made on the
-        first matrix (``_solve_direct``), or a new one on the union where A has an entry outside it."""
-        if self._analysed is None:
-            return None
-        pattern = self._analysed[0]
-        union = pattern + _pattern(A)
-        if union.nnz != pattern.nnz:
-            pattern = _pattern(union)
-            self._analysed = (pattern, _cholmod().analyze(pattern))
-        return self._analysed[1]
+    def _analysis(self):
+        """CHOLMOD's symbolic analysis of the free-dof matrices' pattern (None without CHOLMOD): made on the first
+        matrix of a sparsity (``_solve_direct``; ``_free_matrix`` forgets it when the sparsity changes)."""
+        return self._analysed[1] if self._analysed is not None else None
 
     def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:
         """The last system's matrix solved for another right-hand side ``rhs`` (nodes, 3; 0 on the fixed

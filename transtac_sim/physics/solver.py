@@ -127,7 +127,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
         self._poses: list[np.ndarray] | None = None
-        self._H_dev = None  # the Hessian's constant deviatoric part (assembly.py)
+        self._H_dev = None  # the Hessian's constant deviatoric part (assembly.py ``_deviatoric``), and
+        self._c_dev = self._dev_product = self._dev_work = None  # the term's gradient at u = 0, H_dev's product, a buffer
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._H = None  # the summed Hessian (``_hessian``), and each part's places in it (``_sum_slots``)
         self._H_slots: dict = {}
@@ -212,6 +213,11 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         rel = [P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses, strict=False)]
         s.relative = wp.array(np.stack(rel), dtype=wp.mat44d, device=dev)
         s.max_dist = wp.array([2.0 * i.bounding_radius_mm + 1.0 for i in chosen], dtype=wp.float64, device=dev)
+        pad = [1.0e-6 * (1.0 + i.bounding_radius_mm) for i in chosen]  # float32 vertices: a box a little larger
+        s.box_lo = wp.array([i.vertices_mm.min(axis=0) - d for i, d in zip(chosen, pad, strict=True)],
+                            dtype=wp.vec3d, device=dev)
+        s.box_hi = wp.array([i.vertices_mm.max(axis=0) + d for i, d in zip(chosen, pad, strict=True)],
+                            dtype=wp.vec3d, device=dev)
         s.friction = wp.array([i.friction for i in chosen], dtype=wp.float64, device=dev)
         s.count = len(chosen)
         s.stiffness = self.contact_stiffness
