@@ -1,16 +1,25 @@
 """The device CG's matrix-vector product (physics/sparse_product.py) against scipy, its projection of the fixed
 degrees of freedom (physics/linear.py) against warp.fem's, and its last resort (a shifted system) against scipy's
 solve, on a real Newton Hessian; the deviatoric term taken from its constant Hessian (assembly.py) against its
-integrals; the direct path's free-dof matrix and its kept factorisation's PCG (linear.py)."""
+integrals; the volumetric Hessian assembled tet by tet against warp.fem's assembly; the direct path's free-dof
+matrix and its kept factorisation's PCG (linear.py)."""
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import trimesh
 import warp as wp
 import warp.fem as fem
 
-from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, elasticity
+from transtac_sim.physics import (
+    ElasticMaterial,
+    QuasiStaticSolver,
+    RigidIndenter,
+    SolverSettings,
+    contact,
+    elasticity,
+)
 from transtac_sim.physics.box_mesh import gel_block
 from transtac_sim.physics.linear import (
     PCG_RATE_CHECK,
@@ -21,14 +30,15 @@ from transtac_sim.physics.linear import (
     bsr_to_scipy,
 )
 from transtac_sim.physics.sparse_product import block_row_operator
+from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
 
-def _pressed_solver():
-    """A sphere pressed 0.3 mm into a small P2 block (friction 0.5), and its indenter struct, with the contact state
-    of the solution stored."""
+def _pressed_solver(degree: int = 2):
+    """A sphere pressed 0.3 mm into a small P2 (or P1) block (friction 0.5), and its indenter struct, with the contact
+    state of the solution stored."""
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], SolverSettings(degree=degree))
     P = np.eye(4)
     P[2, 3] = 4.0 + 1e-3
     solver.start([P])
@@ -78,15 +88,44 @@ def test_fixed_projection_matches_warp_fem():
     assert abs(A - B).max() <= 1e-14 * abs(A).max() and abs(A - bsr_to_scipy(_pressed_hessian())).max() > 0.0
 
 
+@fem.integrand
+def _volumetric_hessian_reference(s: fem.Sample, du: fem.Field, v: fem.Field, u: fem.Field,
+                                  params: wp.array(dtype=wp.vec2d), geometric: wp.float64, clamp: int,
+                                  barrier_tets: wp.array(dtype=wp.int32)):
+    """The volumetric Hessian's integrand as elasticity.py states it, for warp.fem's generic assembly."""
+    F = elasticity.deformation_gradient(fem.grad(u, s))
+    mu = params[s.element_index][0]
+    lam = params[s.element_index][1]
+    p = lam * (wp.determinant(F) - wp.float64(1.0) - mu / lam)
+    if clamp != 0:
+        bound = elasticity.pressure_bound(F, mu)
+        if barrier_tets[s.element_index] != 0:
+            bound = wp.float64(0.5) * bound
+        p = wp.clamp(p, -bound, bound)
+    cof = elasticity.cofactor(F)
+    gdu = fem.grad(du, s)
+    gv = fem.grad(v, s)
+    return lam * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + geometric * p * wp.ddot(elasticity.cofactor_delta(F, gdu), gv)
+
+
+def _volumetric_reference(solver, geometric: float, clamp: bool) -> sp.csr_matrix:
+    return bsr_to_scipy(fem.integrate(
+        _volumetric_hessian_reference, quadrature=solver._q_vol, fields={"du": solver._trial, "v": solver._test,
+                                                                         "u": solver.u},
+        values={"params": solver._params, "geometric": geometric, "clamp": int(clamp),
+                "barrier_tets": solver._barrier_tets}, output_dtype=wp.float64))
+
+
 def test_summed_hessian_equals_the_sum_of_its_parts():
-    """assembly.py adds each Hessian part into one kept matrix through precomputed block places: the result equals
-    scipy's sum of the parts (deviatoric, volumetric, contact with friction), and a second assembly overwrites the
-    first instead of adding to it."""
+    """assembly.py adds each Hessian part into one kept matrix: the volumetric part tet by tet, the others through
+    precomputed block places. The result equals scipy's sum of the parts (deviatoric, volumetric by warp.fem's
+    generic assembly, contact with friction), and a second assembly overwrites the first instead of adding to it."""
     solver, ind = _pressed_solver()
     first = bsr_to_scipy(solver._hessian(ind, 1.0, False))
     H = bsr_to_scipy(solver._hessian(ind, 1.0, False))
-    parts = [bsr_to_scipy(solver._H_dev)] + [bsr_to_scipy(M) for M in solver._H_parts.values()]
-    assert set(solver._H_parts) >= {"volumetric", "contact"} and bsr_to_scipy(solver._H_parts["contact"]).nnz > 0
+    parts = [bsr_to_scipy(solver._H_dev), _volumetric_reference(solver, 1.0, False)]
+    parts += [bsr_to_scipy(M) for M in solver._H_parts.values()]
+    assert set(solver._H_parts) >= {"contact"} and bsr_to_scipy(solver._H_parts["contact"]).nnz > 0
     expected = sum(parts[1:], parts[0])
     assert abs(H - expected).max() <= 1e-13 * abs(expected).max()
     assert abs(first - H).max() <= 1e-13 * abs(expected).max()  # not accumulated over the two calls
@@ -179,3 +218,65 @@ def test_contact_outside_the_indenters_box_makes_no_query():
     assert pen > 0.0 and pen == solver._max_penetration(everywhere)
     assert solver._energy(solver.u, ind) == solver._energy(solver.u, everywhere)
     np.testing.assert_array_equal(solver._gradient(ind).numpy(), solver._gradient(everywhere).numpy())
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_volumetric_hessian_tet_by_tet_equals_warp_fems_assembly(degree):
+    """volumetric_hessian.py's blocks (only the nodes whose basis gradient at the centroid is not zero) equal warp.fem's
+    assembly of the integrand over all node pairs: exact, clamped (with the barrier's halved bound in some tets) and
+    Gauss-Newton, on a pressed P1 and P2 block."""
+    solver, ind = _pressed_solver(degree)
+    rng = np.random.default_rng(2)
+    solver._barrier_tets.assign(wp.array((rng.random(len(solver.tets)) < 0.3).astype(np.int32), dtype=wp.int32))
+    total = wp.sparse.bsr_copy(solver._deviatoric()[0])
+    volumetric = VolumetricHessian.make(solver._space, solver.vertices_mm, solver.tets, total, solver.device)
+    clamped = 0
+    for geometric, clamp in ((1.0, False), (1.0, True), (0.0, True)):
+        total.values.zero_()
+        volumetric.add_to(total, solver.u.dof_values, solver._params, geometric, clamp, solver._barrier_tets)
+        expected = _volumetric_reference(solver, geometric, clamp)
+        A = bsr_to_scipy(total)
+        assert abs(A - expected).max() <= 1e-12 * abs(expected).max()
+        clamped += clamp and geometric > 0.0 and abs(expected - _volumetric_reference(solver, 1.0, False)).max() > 0.0
+    assert clamped == 1  # the clamp acts somewhere in this state
+
+
+def test_contact_hessian_over_its_sides_equals_the_full_assembly():
+    """The contact Hessian integrated over the sides where it can be non-zero (contact_sides.py) equals warp.fem's
+    assembly over every touchable side, and that subset is a small part of them."""
+    solver, ind = _pressed_solver()
+    subset_hessian = bsr_to_scipy(solver._contact_hessian(ind))
+    subset = solver._contact_sides.current
+    sides = subset.mask.size
+    assert 0 < np.count_nonzero(subset.mask) < sides / 4
+    full = fem.integrate(contact.contact_hessian_form, quadrature=solver._q_contact,
+                         fields={"du": fem.make_trial(solver._space, domain=solver._sides), "v": solver._side_test},
+                         values=solver._contact_values(ind) | {"qp_base": wp.array(np.arange(sides) * subset.points,
+                                                                                     dtype=int),
+                                                             "points": subset.points}, output_dtype=wp.float64)
+    expected = bsr_to_scipy(full)
+    assert expected.nnz > 0 and abs(subset_hessian - expected).max() <= 1e-13 * abs(expected).max()
+
+
+def test_contact_sides_are_kept_until_contact_reaches_beyond_them():
+    """``ContactSides.update``: the sides with a stiff point and their neighbours; the subset is kept while it holds
+    them, grown (their union) when contact spreads, and made from what is needed alone when the union is over twice
+    that."""
+    solver, _ = _pressed_solver()
+    chooser, points = solver._contact_sides, solver._contact_sides.current.points
+    sides = chooser.current.mask.size
+    stiff = np.zeros((sides, points), dtype=bool)
+    stiff[0, 1] = True
+    assert chooser.update(stiff.reshape(-1))
+    first = chooser.current.mask.copy()
+    assert first[0] and 1 < np.count_nonzero(first) < 20  # side 0 and its neighbours
+    assert not chooser.update(stiff.reshape(-1)) and chooser.current.mask is not None
+    neighbour = np.flatnonzero(first)[-1]
+    stiff[neighbour, 0] = True  # contact spreads to a neighbour: its neighbours are added
+    assert chooser.update(stiff.reshape(-1)) and np.all(chooser.current.mask[first])
+    far = np.flatnonzero(~chooser.current.mask)[-1]
+    stiff[:] = False
+    stiff[far, 0] = True  # contact elsewhere only: the old subset is dropped (the union would be over twice)
+    assert chooser.update(stiff.reshape(-1)) and chooser.current.mask[far] and not chooser.current.mask[0]
+    stiff[:] = False
+    assert not chooser.update(stiff.reshape(-1))  # nothing touches: nothing to add

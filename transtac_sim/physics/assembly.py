@@ -5,11 +5,13 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 
 - the deviatoric term is quadratic in u: its Hessian H_dev is assembled once, and its energy and gradient are products
   with it (``_deviatoric``) instead of integrations at 4 points per tet;
-- the volumetric, barrier and contact Hessians are assembled into kept matrices whose sparsity does not change
-  (``_assemble``: warp.fem's mapped construction, values only after the first assembly), and added into one kept
-  matrix with the deviatoric part's sparsity (``_hessian``), the one the linear solver receives;
+- the barrier and contact Hessians are assembled into kept matrices whose sparsity does not change (``_assemble``:
+  warp.fem's mapped construction, values only after the first assembly), and added into one kept matrix with the
+  deviatoric part's sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point
+  per tet) is added to it tet by tet (volumetric_hessian.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
-- contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``).
+- contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``), its Hessian
+  only over those where it can be non-zero (contact_sides.py).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
 from transtac_sim.physics.sparse_product import block_row_operator
+from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
 
 @wp.kernel(enable_backward=False)
@@ -120,9 +123,8 @@ class Assembly:
         volumetric term's geometric part (elasticity.py).
 
         The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and is the sum's start;
-        each other part is added through its blocks' places in the sum (``_sum_slots``), one launch per part instead
-        of a sparse matrix sum."""
-        vals = {"params": self._params}
+        the volumetric part is added tet by tet (volumetric_hessian.py), each other part through its blocks' places in
+        the sum (``_sum_slots``), one launch per part instead of a sparse matrix sum."""
         f = {"du": self._trial, "v": self._test}
         H_dev, _, _ = self._deviatoric()
         if self._H is None:
@@ -135,23 +137,37 @@ class Assembly:
             barrier_qp = {"F_qp": self._F_det, "b_qp": self._b_det}
             fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
                             values=self._barrier_values() | barrier_qp | hessian)
-        qp = {"F_qp": self._F_qp, "p_qp": self._p_qp}
-        fem.interpolate(elasticity.volumetric_state_form, at=self._q_vol, fields={"u": self.u},
-                        values=vals | qp | hessian)
-        parts["volumetric"] = self._assemble("volumetric", elasticity.volumetric_hessian_form, self._q_vol, f,
-                                             vals | qp)
-        if barrier:
             parts["barrier"] = self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, barrier_qp)
         if ind.count:
-            fields = {"du": self._side_trial, "v": self._side_test}
-            parts["contact"] = self._assemble("contact", contact.contact_hessian_form, self._q_contact, fields,
-                                              self._contact_values(ind))
+            contact_part = self._contact_hessian(ind)
+            if contact_part is not None:
+                parts["contact"] = contact_part
         H = self._H
         wp.copy(H.values, H_dev.values, count=H_dev.nnz)
+        if self._volumetric is None:
+            self._volumetric = VolumetricHessian.make(self._space, self.vertices_mm, self.tets, H, self.device)
+        self._volumetric.add_to(H, self.u.dof_values, self._params, geometric, clamp, self._barrier_tets)
         for name, part in parts.items():
             slots = self._sum_slots(name, part)
             wp.launch(_add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
         return H
+
+    def _contact_hessian(self, ind) -> BsrMatrix | None:
+        """The contact Hessian, integrated over the sides where it can be non-zero (contact_sides.py: those with a
+        normal or friction stiffness in the contact state of the last ``_gradient``, and their neighbours); None where
+        there are none. Its matrix and places in the sum are made anew when the subset is."""
+        st = self._contact_state
+        n = self._q_contact.total_point_count() * ind.count
+        stiff = (st.k_normal.numpy()[:n] != 0.0) | (st.k_slip.numpy()[:n] != 0.0) | (st.k_slip_dir.numpy()[:n] != 0.0)
+        if self._contact_sides.update(stiff.reshape(-1, ind.count).any(axis=1)):
+            self._H_parts.pop("contact", None)
+            self._H_slots.pop("contact", None)
+        subset = self._contact_sides.current
+        if subset is None or subset.quadrature is None:
+            return None
+        return self._assemble("contact", contact.contact_hessian_form, subset.quadrature,
+                              {"du": subset.trial, "v": subset.test},
+                              self._contact_values(ind) | {"qp_base": subset.qp_base, "points": subset.points})
 
     def _assemble(self, name: str, form, quadrature, fields: dict, values: dict) -> BsrMatrix:
         """A Hessian part, assembled into the same matrix each time (``self._H_parts[name]``). Its sparsity does not

@@ -226,10 +226,14 @@ def contact_gradient_form(s: fem.Sample, v: fem.Field, st: ContactState):
 
 
 @fem.integrand
-def contact_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, ind: Indenters, st: ContactState):
+def contact_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, ind: Indenters, st: ContactState,
+                         qp_base: wp.array(dtype=int), points: int):
+    """On a subset of the contact sides (contact_sides.py): its point s.qp_index is the full quadrature's point
+    qp_base[s.qp_index / points] + s.qp_index % points, where the contact state is stored."""
     h = _f(0.0)
+    q = qp_base[s.qp_index // points] + s.qp_index % points
     for i in range(ind.count):
-        j = s.qp_index * ind.count + i
+        j = q * ind.count + i
         n = st.normal[j]
         h += st.k_normal[j] * wp.dot(n, du(s)) * wp.dot(n, v(s))
         nl = st.lag_n[j]

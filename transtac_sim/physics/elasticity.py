@@ -11,6 +11,7 @@ not lock, while the fully integrated mu-term keeps the stiffness matrix free of 
 
 Gradient (N):   mu F : grad v  +  s cof(F) : grad v,          s = lam (J - alpha)
 Hessian:        mu grad du : grad v + lam (cof F : grad du)(cof F : grad v) + s_h dcof(F)[grad du] : grad v
+                (its volumetric part assembled tet by tet in volumetric_hessian.py)
 
 with cof(F) = dJ/dF = [f1 x f2, f2 x f0, f0 x f1] (columns f_i of F). ``s_h`` is ``geometric`` times
 either ``s`` itself (the exact Hessian) or, with ``clamp``, ``s`` clamped to [-mu/sigma_max, mu/sigma_max]
@@ -126,50 +127,6 @@ def volumetric_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: 
 @fem.integrand
 def deviatoric_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, params: wp.array(dtype=wp.vec2d)):
     return params[s.element_index][0] * wp.ddot(fem.grad(du, s), fem.grad(v, s))
-
-
-@fem.integrand
-def volumetric_state_form(
-    s: fem.Sample,
-    u: fem.Field,
-    params: wp.array(dtype=wp.vec2d),
-    geometric: wp.float64,
-    clamp: int,
-    F_qp: wp.array(dtype=wp.mat33d),
-    p_qp: wp.array(dtype=wp.float64),
-    barrier_tets: wp.array(dtype=wp.int32),
-):
-    """Stores F and the pressure s_h (clamped if ``clamp``: to half the bound in ``barrier_tets``, see the
-    module's docstring) at each quadrature point, so that the Hessian's assembly (which evaluates its integrand once
-    per pair of degrees of freedom) does not repeat the SVD."""
-    F = deformation_gradient(fem.grad(u, s))
-    mu = params[s.element_index][0]
-    lam = params[s.element_index][1]
-    p = lam * (wp.determinant(F) - _f(1.0) - mu / lam)
-    F_qp[s.qp_index] = F
-    if clamp != 0:
-        bound = pressure_bound(F, mu)
-        if barrier_tets[s.element_index] != 0:
-            bound = _f(0.5) * bound
-        p = wp.clamp(p, -bound, bound)
-    p_qp[s.qp_index] = geometric * p
-
-
-@fem.integrand
-def volumetric_hessian_form(
-    s: fem.Sample,
-    du: fem.Field,
-    v: fem.Field,
-    params: wp.array(dtype=wp.vec2d),
-    F_qp: wp.array(dtype=wp.mat33d),
-    p_qp: wp.array(dtype=wp.float64),
-):
-    F = F_qp[s.qp_index]
-    cof = cofactor(F)
-    gdu = fem.grad(du, s)
-    gv = fem.grad(v, s)
-    lam = params[s.element_index][1]
-    return lam * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + p_qp[s.qp_index] * wp.ddot(cofactor_delta(F, gdu), gv)
 
 
 @fem.integrand

@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from transtac_sim.physics import contact
 from transtac_sim.physics.assembly import Assembly
+from transtac_sim.physics.contact_sides import ContactSides
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
@@ -86,12 +87,13 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             self._geo = fem.Tetmesh(wp.array(T, dtype=int), wp.array(V, dtype=wp.vec3d))
             self._space = fem.make_polynomial_space(self._geo, degree=settings.degree, dtype=wp.vec3d)
             self._cells = fem.Cells(self._geo)
-            self._sides = self._touchable_sides(fixed_vertices)
+            self._sides, side_vertices = self._touchable_sides(fixed_vertices)
             self._q_dev = fem.RegularQuadrature(self._cells, order=2 * (settings.degree - 1))
             self._q_vol = fem.RegularQuadrature(self._cells, order=0)
             self._q_det = fem.RegularQuadrature(self._cells, order=2)
             corder = settings.contact_quadrature_order or 2 * settings.degree
             self._q_contact = fem.RegularQuadrature(self._sides, order=corder)
+            self._contact_sides = ContactSides(self._space, self._sides, side_vertices, corder, self.device)
             self._params = wp.array(self._params_np, dtype=wp.vec2d)
             self.u = self._space.make_field()  # current
             self.u_prev = self._space.make_field()  # start of the current (sub)step
@@ -101,10 +103,6 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             self._test = fem.make_test(self._space, domain=self._cells)
             self._trial = fem.make_trial(self._space, domain=self._cells)
             self._side_test = fem.make_test(self._space, domain=self._sides)
-            self._side_trial = fem.make_trial(self._space, domain=self._sides)
-            n_vol = self._q_vol.total_point_count()
-            self._F_qp = wp.empty(n_vol, dtype=wp.mat33d)
-            self._p_qp = wp.empty(n_vol, dtype=wp.float64)
             n_det = self._q_det.total_point_count()
             self._F_det = wp.empty(n_det, dtype=wp.mat33d)
             self._b_det = wp.empty(n_det, dtype=wp.vec2d)
@@ -130,6 +128,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self._H_dev = None  # the Hessian's constant deviatoric part (assembly.py ``_deviatoric``), and
         self._c_dev = self._dev_product = self._dev_work = None  # the term's gradient at u = 0, H_dev's product, a buffer
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
+        self._volumetric = None  # the tet-by-tet volumetric Hessian's set-up (volumetric_hessian.py), made on first use
         self._H = None  # the summed Hessian (``_hessian``), and each part's places in it (``_sum_slots``)
         self._H_slots: dict = {}
         self._increment: tuple[wp.array, np.ndarray, float] | None = None  # last (du, pose step, penetration)
@@ -149,17 +148,19 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             raise ValueError(f"fixed mask must be (N,) or (N,3), got {fixed.shape}")
         return fixed
 
-    def _touchable_sides(self, fixed_vertices: np.ndarray) -> fem.GeometryDomain:
-        """The boundary sides contact is integrated over: all but those whose three vertices are fixed in every
-        component (the bonded face: it cannot move, and no indenter reaches it through the gel). On a slab that is
-        about half the boundary, and every contact kernel (a mesh query per quadrature point) does half the work."""
+    def _touchable_sides(self, fixed_vertices: np.ndarray) -> tuple[fem.GeometryDomain, np.ndarray]:
+        """The boundary sides contact is integrated over, and their vertex indices (sides, 3): all but those whose
+        three vertices are fixed in every component (the bonded face: it cannot move, and no indenter reaches it
+        through the gel). On a slab that is about half the boundary, and every contact kernel (a mesh query per
+        quadrature point) does half the work."""
         sides = fem.BoundarySides(self._geo)
         # boundary side i is face _boundary_face_indices[i] of the Tetmesh (what its boundary_side_index returns)
         faces = self._geo.face_vertex_indices.numpy()[self._geo._boundary_face_indices.numpy()]
         held = fixed_vertices.all(axis=1)[faces].all(axis=1)
         if not held.any():
-            return sides
-        return fem.Subdomain(sides, element_indices=wp.array(np.flatnonzero(~held).astype(np.int32), dtype=int))
+            return sides, faces
+        return (fem.Subdomain(sides, element_indices=wp.array(np.flatnonzero(~held).astype(np.int32), dtype=int)),
+                faces[~held])
 
     def _map_nodes(self, fixed: np.ndarray):
         """(node of each vertex, the (nodes, 3) Dirichlet mask of the FE nodes) from the vertices' mask ``fixed``;

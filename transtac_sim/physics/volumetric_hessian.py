@@ -1,0 +1,155 @@
+"""The volumetric term's Hessian, assembled tet by tet into the summed Newton matrix (assembly.py).
+
+E_vol = sum_tets V lam/2 (J - alpha)^2 with J = det F at one point per tet, the centroid (elasticity.py). With
+g_a the gradient of node a's basis function at the centroid and b_a = cof(F) g_a, the 3x3 block of nodes (a, b) is
+
+    V [ lam b_a b_b^T + s_h C_ab ],   column j of C_ab = dcof(F)[e_j g_b^T] g_a   (elasticity.cofactor_delta),
+
+s_h the pressure lam (J - alpha) times ``geometric``, clamped to mu / sigma_max(F) (half that in tets where the barrier
+acts) with ``clamp``: elasticity.py's module docstring says why. At the centroid the P2 vertex functions have zero
+gradient (phi = l (2 l - 1) with l = 1/4), so only a tet's 6 edge nodes couple, each edge node's g the sum of its two
+vertices' barycentric gradients: 36 blocks a tet (P1: its 4 vertices, 16 blocks).
+
+warp.fem's generic assembly evaluated the integrand once per pair of the tet's 10 nodes: 33 ms per Hessian for the tiny
+press fixture's 3267 tets on the 2-core CPU (scripts/fem_phase_profile.py), for blocks most of which are zero. Here one
+thread per tet writes its blocks, then one thread per receiving block of the sum adds them in a fixed order (a list
+made once): the same sums in a deterministic order on every device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from warp.sparse import BsrMatrix
+
+from transtac_sim.physics.elasticity import cofactor, cofactor_delta, pressure_bound
+
+_f = wp.float64
+
+
+@wp.kernel(enable_backward=False)
+def _tet_blocks(u: wp.array(dtype=wp.vec3d), nodes: wp.array2d(dtype=int), grads: wp.array2d(dtype=wp.vec3d),
+                volume: wp.array(dtype=wp.float64), params: wp.array(dtype=wp.vec2d), geometric: wp.float64,
+                clamp: int, barrier_tets: wp.array(dtype=wp.int32), blocks: wp.array(dtype=wp.mat33d)):
+    """blocks[(t K + a) K + b]: the volumetric Hessian block of tet t's coupled nodes a, b (K of them)."""
+    t = wp.tid()
+    K = nodes.shape[1]
+    F = wp.identity(n=3, dtype=wp.float64)
+    for a in range(K):
+        F += wp.outer(u[nodes[t, a]], grads[t, a])
+    mu = params[t][0]
+    lam = params[t][1]
+    p = lam * (wp.determinant(F) - _f(1.0) - mu / lam)
+    if clamp != 0:
+        bound = pressure_bound(F, mu)
+        if barrier_tets[t] != 0:
+            bound = _f(0.5) * bound
+        p = wp.clamp(p, -bound, bound)
+    s = geometric * p
+    cof = cofactor(F)
+    V = volume[t]
+    for a in range(K):
+        ga = grads[t, a]
+        ba = cof * ga
+        for b in range(K):
+            gb = grads[t, b]
+            bb = cof * gb
+            c0 = lam * bb[0] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(1.0), _f(0.0), _f(0.0)), gb)) * ga)
+            c1 = lam * bb[1] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(1.0), _f(0.0)), gb)) * ga)
+            c2 = lam * bb[2] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(0.0), _f(1.0)), gb)) * ga)
+            blocks[(t * K + a) * K + b] = V * wp.matrix_from_cols(c0, c1, c2)
+
+
+@wp.kernel(enable_backward=False)
+def _add_gathered(targets: wp.array(dtype=int), offsets: wp.array(dtype=int), sources: wp.array(dtype=int),
+                  blocks: wp.array(dtype=wp.mat33d), total: wp.array(dtype=wp.mat33d)):
+    """total[targets[r]] += the sum of blocks[sources[offsets[r]:offsets[r + 1]]], in that order."""
+    r = wp.tid()
+    acc = wp.mat33d()
+    for q in range(offsets[r], offsets[r + 1]):
+        acc += blocks[sources[q]]
+    total[targets[r]] = total[targets[r]] + acc
+
+
+@dataclass(frozen=True)
+class VolumetricHessian:
+    """What the tet-by-tet assembly needs, made once per mesh (``make``): each tet's coupled nodes and their basis
+    gradients at the centroid (1/mm), its volume (mm^3), and where its blocks go in the summed matrix."""
+
+    nodes: wp.array  # (tets, K) int: node indices (warp.fem space numbering)
+    grads: wp.array  # (tets, K) vec3d
+    volume: wp.array  # (tets,) float64
+    targets: wp.array  # receiving blocks of the sum
+    offsets: wp.array  # per receiving block, its range in ``sources``
+    sources: wp.array  # indices into the per-tet blocks
+    blocks: wp.array  # (tets K K) mat33d work space
+
+    @staticmethod
+    def make(space, vertices_mm: np.ndarray, tets: np.ndarray, total: BsrMatrix, device) -> VolumetricHessian:
+        """``space``: the P1 or P2 warp.fem space of the mesh ``vertices_mm``, ``tets`` (positively oriented, as the
+        solver keeps them); ``total``: a matrix with the sum's sparsity (every pair of nodes of a tet)."""
+        element_nodes = space.topology.element_node_indices().numpy()
+        X = space.node_positions().numpy()
+        corners = vertices_mm[tets]  # (tets, 4, 3)
+        edges = corners[:, 1:] - corners[:, :1]
+        inverse = np.linalg.inv(edges.transpose(0, 2, 1))  # rows: gradients of barycentric coordinates 1-3
+        lam_grad = np.concatenate([-inverse.sum(axis=1, keepdims=True), inverse], axis=1)  # (tets, 4, 3)
+        volume = np.abs(np.linalg.det(edges)) / 6.0
+        pairs = _coupled_nodes(X[element_nodes[0]], corners[0], element_nodes.shape[1])
+        for local, (i, j) in pairs:  # the same local layout in every tet
+            expected = 0.5 * (corners[:, i] + corners[:, j])
+            if not np.allclose(X[element_nodes[:, local]], expected, atol=1e-9 * (1.0 + np.abs(vertices_mm).max())):
+                raise RuntimeError("unexpected node layout in the warp.fem space")
+        nodes = element_nodes[:, [local for local, _ in pairs]]
+        grads = np.stack([lam_grad[:, i] + (lam_grad[:, j] if j != i else 0.0) for _, (i, j) in pairs], axis=1)
+        K = nodes.shape[1]
+        rows = np.repeat(nodes, K, axis=1).reshape(-1).astype(np.int64)
+        cols = np.tile(nodes, (1, K)).reshape(-1).astype(np.int64)
+        offsets = total.offsets.numpy()
+        keys = np.repeat(np.arange(total.nrow, dtype=np.int64), np.diff(offsets)) * total.ncol \
+            + total.columns.numpy()[:offsets[-1]]
+        want = rows * total.ncol + cols
+        slot = np.searchsorted(keys, want)
+        if np.any(slot >= len(keys)) or np.any(keys[np.minimum(slot, len(keys) - 1)] != want):
+            raise RuntimeError("a volumetric Hessian block lies outside the elements' sparsity")
+        order = np.argsort(slot, kind="stable")
+        targets, counts = np.unique(slot[order], return_counts=True)
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=device)
+
+        return VolumetricHessian(
+            nodes=arr(nodes.astype(np.int32), int), grads=arr(grads, wp.vec3d), volume=arr(volume, wp.float64),
+            targets=arr(targets.astype(np.int32), int),
+            offsets=arr(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), int),
+            sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(rows), dtype=wp.mat33d, device=device))
+
+    def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: bool,
+               barrier_tets: wp.array) -> None:
+        """Adds the volumetric Hessian at displacement ``u`` (dof values, mm) to ``total``'s blocks, in place."""
+        device = total.values.device
+        wp.launch(_tet_blocks, dim=self.nodes.shape[0], device=device,
+                  inputs=[u, self.nodes, self.grads, self.volume, params, wp.float64(geometric), int(clamp),
+                          barrier_tets, self.blocks])
+        wp.launch(_add_gathered, dim=len(self.targets), device=device,
+                  inputs=[self.targets, self.offsets, self.sources, self.blocks, total.values])
+
+
+def _coupled_nodes(positions: np.ndarray, corners: np.ndarray, count: int) -> list[tuple[int, tuple[int, int]]]:
+    """(local node, (i, j)) for the nodes whose basis gradient at the centroid is not zero: P1 (4 nodes) its vertices
+    (i = j), P2 (10 nodes) its edge nodes (midpoint of vertices i, j), found by position in one tet."""
+    if count == 4:
+        return [(k, (k, k)) for k in range(4)]
+    if count != 10:
+        raise ValueError(f"expected P1 or P2 tets (4 or 10 nodes), got {count}")
+    found = []
+    for local, x in enumerate(positions):
+        for i in range(4):
+            for j in range(i + 1, 4):
+                if np.allclose(x, 0.5 * (corners[i] + corners[j])):
+                    found.append((local, (i, j)))
+    if len(found) != 6:
+        raise RuntimeError("unexpected node layout in the warp.fem P2 space")
+    return found
