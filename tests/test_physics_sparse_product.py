@@ -193,7 +193,7 @@ def test_free_matrix_gathers_each_new_hessian():
 
 def test_kept_factorisation_pcg_gives_up_early_where_it_would_not_converge():
     """``_pcg`` with a poor preconditioner (the factorisation of another matrix) stops before its cap where its rate
-    so far cannot reach the tolerance in time, and converges with a good one."""
+    so far cannot reach the tolerance in time, converges with a good one, and does nothing from a solution."""
     rng = np.random.default_rng(0)
     n = 400
     L = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n)).tocsc()
@@ -203,6 +203,8 @@ def test_kept_factorisation_pcg_gives_up_early_where_it_would_not_converge():
     assert x is None and PCG_RATE_CHECK <= iterations < 20
     x, iterations = _pcg(A, b, spla.factorized(A), 1e-6, 20)
     assert x is not None and iterations <= 2 and np.linalg.norm(A @ x - b) <= 1e-6 * np.linalg.norm(b)
+    x_again, iterations = _pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20, x0=x)
+    assert iterations == 0 and np.array_equal(x_again, x)  # started at a solution: nothing to do
 
 
 def test_contact_outside_the_indenters_box_makes_no_query():
