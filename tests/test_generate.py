@@ -16,7 +16,7 @@ import pytest
 from pycocotools.coco import COCO
 
 from transtac_sim.dataset import contract
-from transtac_sim.dataset.generate import generate, ray_gpu_share
+from transtac_sim.dataset.generate import _SequenceWorker, generate, ray_gpu_share
 from transtac_sim.dataset.validate import validate_dataset
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -156,3 +156,36 @@ def test_local_workers_share_the_cores():
     for opencv, pools in local_tasks(_thread_counts, [None] * workers, workers, spawn=True):
         assert opencv == 1
         assert pools and all(n == 1 for n in pools)
+
+
+class _ThreadProbe(_SequenceWorker):
+    """``generate``'s GPU actor, asked for its thread pools."""
+
+    def counts(self) -> tuple[int, list[int]]:
+        return _thread_counts()
+
+
+def test_ray_workers_share_the_cores():
+    """Ray tasks (``ray_tasks``: ``generate``'s Ray path without GPUs) and GPU actors get their share of their node's
+    cores, as local workers do: cores / the node's Ray CPUs each for a task (here twice as many Ray CPUs as cores: 1
+    thread), cores x GPU share / the node's GPUs for an actor (half of the one GPU: half the cores, at least 1)."""
+    ray = pytest.importorskip("ray")
+    from ray import cloudpickle
+
+    from transtac_sim.executors import ray_tasks
+
+    cores = os.cpu_count() or 1
+    this_module = sys.modules[__name__]
+    cloudpickle.register_pickle_by_value(this_module)  # Ray's workers do not have the tests on their path
+    ray.shutdown()
+    ray.init(num_cpus=2 * cores, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        task_counts = list(ray_tasks(_thread_counts, [None] * 2, None, 2 * cores))
+        actor = ray.remote(num_gpus=0.5, num_cpus=0)(_ThreadProbe).remote(0.5)
+        opencv, pools = ray.get(actor.counts.remote())
+    finally:
+        ray.shutdown()
+        cloudpickle.unregister_pickle_by_value(this_module)
+    assert all(o == 1 and p and all(n == 1 for n in p) for o, p in task_counts)
+    share = max(1, cores // 2)
+    assert opencv == share and pools and all(n == share for n in pools)

@@ -46,11 +46,31 @@ def start_ray(address: str | None, workers: int):
     return ray
 
 
+def ray_node_threads(gpu_share: float = 0.0) -> int:
+    """Inside a Ray worker: its share of its node's cores, for ``limit_threads`` (at least 1). A task holding one of
+    the node's Ray CPUs gets cores / Ray CPUs; an actor holding ``gpu_share`` of a GPU gets cores x gpu_share / the
+    node's GPUs (Ray itself sets OMP_NUM_THREADS only, not the BLAS or OpenCV pools)."""
+    import ray
+
+    here = ray.get_runtime_context().get_node_id()
+    resources = next((n["Resources"] for n in ray.nodes() if n["NodeID"] == here), {})
+    cores = os.cpu_count() or 1
+    if gpu_share > 0.0:
+        return max(1, int(cores * gpu_share / max(resources.get("GPU", 1.0), 1.0)))
+    return max(1, int(cores / max(resources.get("CPU", 1.0), 1.0)))
+
+
+def _on_node_share(fn: Callable, task):
+    limit_threads(ray_node_threads())
+    return fn(task)
+
+
 def ray_tasks(fn: Callable, tasks: list, address: str | None, workers: int) -> Iterator:
-    """``fn(task)`` for each task as a Ray task (as many at once as the cluster has CPUs), in order of completion."""
+    """``fn(task)`` for each task as a Ray task (as many at once as the cluster has CPUs, each task's thread pools
+    limited to its share of its node's cores), in order of completion."""
     ray = start_ray(address, workers)
-    remote = ray.remote(fn)
-    pending = [remote.remote(t) for t in tasks]
+    remote = ray.remote(_on_node_share)
+    pending = [remote.remote(fn, t) for t in tasks]
     while pending:
         ready, pending = ray.wait(pending, num_returns=1)
         yield ray.get(ready[0])

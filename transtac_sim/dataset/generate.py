@@ -20,7 +20,7 @@ from pathlib import Path
 from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset.coco import write_coco
 from transtac_sim.dataset.manifest import build_manifest, read_manifest, write_manifest
-from transtac_sim.executors import local_tasks, ray_tasks, start_ray
+from transtac_sim.executors import limit_threads, local_tasks, ray_node_threads, ray_tasks, start_ray
 from transtac_sim.gpu_sharing import MpsUnavailable, mps_server
 from transtac_sim.writer.atomic import write_json
 
@@ -77,14 +77,18 @@ def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int, gpus_
         return
     share = ray_gpu_share(gpus, workers)
     actor = ray.remote(num_gpus=share, num_cpus=0)(_SequenceWorker)
-    pool = ActorPool([actor.remote() for _ in range(round(gpus / share))])
+    pool = ActorPool([actor.remote(share) for _ in range(round(gpus / share))])
     for gpu_ids, frames in pool.map_unordered(lambda a, t: a.run.remote(t), tasks):
         gpus_used.update(gpu_ids)
         yield frames
 
 
 class _SequenceWorker:
-    """A Ray actor that solves sequences on the GPU share it was given."""
+    """A Ray actor that solves sequences on the GPU share it was given, its thread pools limited to the same share of
+    its node's cores (``executors.ray_node_threads``)."""
+
+    def __init__(self, gpu_share: float):
+        limit_threads(ray_node_threads(gpu_share))
 
     def run(self, task: SequenceTask) -> tuple[list[str], list[dict]]:
         """(the Ray ids of this actor's GPUs, the sequence's frame statuses)"""
