@@ -87,6 +87,7 @@ class NewtonSteps:
         friction = any(i.friction > 0 for i in self.indenters)
         iterations, raises, lags, full_step, inverted = 0, 0, 0, False, False
         g_first = None  # |g| at the first pass: the forcing term's reference
+        energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
         while True:
             g_np = self._gradient(ind).numpy()
             g_np[self._fixed_nodes] = 0.0
@@ -97,9 +98,10 @@ class NewtonSteps:
             estimate = self._linear.solve_last(-g_np, exact_below=10.0 * tol) if full_step else None
             remaining = float(np.max(np.abs(estimate))) if estimate is not None else np.inf
             if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
-                lags += 1
+                lags, energy_here = lags + 1, None
                 continue
             if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
+                energy_here = None
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
                 fem.linalg.array_axpy(x=wp.array(estimate, dtype=wp.vec3d, device=self.device),
                                       y=self._u_try.dof_values, alpha=1.0)
@@ -114,7 +116,7 @@ class NewtonSteps:
                 why = " (line-search steps cut short by inverted elements, det F <= 0)" if inverted else ""
                 return False, iterations, "Newton iteration limit reached" + why, 0.0
             iterations += 1
-            energy = self._energy(self.u, ind)
+            energy = energy_here if energy_here is not None else self._energy(self.u, ind)
             rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
             rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)  # CG only: the direct path is exact
             ladder = self._hessian_ladder()
@@ -149,6 +151,7 @@ class NewtonSteps:
                     alpha *= 0.5
                 self.stats["backtracks"] += 1
             else:  # converged (a full step below the tolerance) or, below 100 x tol, E differs by round-off only
+                energy_here = None
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
                 fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=1.0)
                 if step_max >= 100.0 * tol or not self._min_det(self._u_try) > 0.0:
@@ -165,7 +168,7 @@ class NewtonSteps:
                 raises, full_step = raises + 1, False
                 continue
             wp.copy(self.u.dof_values, self._u_try.dof_values)
-            full_step = alpha == 1.0
+            full_step, energy_here = alpha == 1.0, e_try
 
     def _newton_iteration_cap(self) -> int:
         """``max_newton_iterations``, or its default for the linear solver in use (settings.py)."""
