@@ -33,7 +33,7 @@ from transtac_sim.config import load_scene
 from transtac_sim.dataset.sequence import StageClock
 from transtac_sim.physics import QuasiStaticSolver
 from transtac_sim.scene_setup import load_setup
-from transtac_sim.simulation import simulate_frames
+from transtac_sim.simulation import physics_device, simulate_frames
 
 SECTION = "fem_newton_iterations_cpu"
 BENCHMARKS = Path(__file__).resolve().parents[1] / "BENCHMARKS.md"
@@ -80,11 +80,7 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     QuasiStaticSolver.solve_frame = recording
     what = f"{scene}" + (f" with the trajectories of {trajectory_from}" if trajectory_from else "") + (
         f" sequence {sequence}" if sequence is not None else "")
-    device = setup.scene.physics.device
-    if device == "auto":
-        import warp as wp
-
-        device = "cuda" if wp.is_cuda_available() else "cpu"
+    device = physics_device(setup.scene.physics.device)
     print(f"{what} on a {os.cpu_count()}-core CPU (physics device {device}), P{degree}, {frames} frame(s)")
     clock, t0, load0 = StageClock(), time.perf_counter(), os.getloadavg()[0]
     forces = []

@@ -87,7 +87,8 @@ def simulate_frames(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
     yield from _solve_with_fem(setup, frames, clock)
 
 
-def _device(name: str) -> str:
+def physics_device(name: str) -> str:
+    """The Warp device a scene's ``[physics] device`` names: "auto" is cuda where a GPU is available, else cpu."""
     if name != "auto":
         return name
     import warp as wp
@@ -117,7 +118,7 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             [RigidIndenter.from_trimesh(i.config.name, i.mesh.mesh, i.config.friction) for i in setup.indenters],
             settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm, linear_solver=cfg.linear_solver,
                                     slip_eps_mm=cfg.friction_slip_mm, friction_lag_moves=cfg.friction_lag_moves),
-            device=_device(cfg.device))
+            device=physics_device(cfg.device))
     faces = g.boundary_faces()
     thickness = setup.sensor.gel_size_mm[2]
     sequence = simulate_sequence(solver, [i.start_pose for i in setup.indenters],

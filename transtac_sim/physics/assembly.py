@@ -16,6 +16,8 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import warp as wp
 import warp.fem as fem
@@ -31,6 +33,15 @@ def _add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), tot
     """total[slots[k]] += part[k]: a part's blocks added at their places in the sum (each place once per part)."""
     k = wp.tid()
     total[slots[k]] = total[slots[k]] + part[k]
+
+
+class DeviatoricTerm(NamedTuple):
+    """The deviatoric term's constant parts (``Assembly._deviatoric``)."""
+
+    H: BsrMatrix  # int mu grad du : grad v, every dof (the fixed ones too)
+    c: wp.array  # int mu I : grad v, its gradient at u = 0 (vec3d per node)
+    product: object  # H's matrix-vector product (sparse_product.py)
+    work: wp.array  # a buffer like c
 
 
 class Assembly:
@@ -59,36 +70,34 @@ class Assembly:
         return float(fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": u},
                                    values=self._barrier_values()))
 
-    def _deviatoric(self):
-        """(H_dev, c, H_dev's product operator), made on first use. The deviatoric term is quadratic in u:
+    def _deviatoric(self) -> DeviatoricTerm:
+        """The deviatoric term's constant parts, made on first use. The term is quadratic in u:
 
             E_dev(u) = int mu/2 (|I + grad u|^2 - 3) = c . u + u . H_dev u / 2,   gradient  c + H_dev u,
 
         H_dev = int mu grad du : grad v (all dofs, the fixed ones too) and c = int mu I : grad v (the gradient at
         u = 0), both integrated at order 2 (exact for P2). One sparse product then gives the term's energy or gradient
         (``_energy``, ``_gradient``) instead of an integration at 4 points per tet."""
-        if self._H_dev is None:
+        if self._dev is None:
             vals = {"params": self._params}
             # with the mapped construction, as the other parts: every element's node pairs are blocks, none pruned
             # where it is zero (the default construction drops such blocks, e.g. on an axis-aligned mesh)
-            self._H_dev = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev,
-                                        fields={"du": self._trial, "v": self._test}, values=vals,
-                                        output_dtype=wp.float64,
-                                        bsr_options={"construction": "mapped", "capacity": "auto"})
-            self._H_dev.nnz_sync()
+            H = fem.integrate(elasticity.deviatoric_hessian_form, quadrature=self._q_dev,
+                              fields={"du": self._trial, "v": self._test}, values=vals, output_dtype=wp.float64,
+                              bsr_options={"construction": "mapped", "capacity": "auto"})
+            H.nnz_sync()
             with wp.ScopedDevice(self.device):
-                zero = self._space.make_field()
-                self._c_dev = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev,
-                                            fields={"u": zero, "v": self._test}, values=vals, output_dtype=wp.vec3d)
-            self._dev_product = block_row_operator(self._H_dev)
-            self._dev_work = wp.empty_like(self._c_dev)
-        return self._H_dev, self._c_dev, self._dev_product
+                c = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev,
+                                  fields={"u": self._space.make_field(), "v": self._test}, values=vals,
+                                  output_dtype=wp.vec3d)
+            self._dev = DeviatoricTerm(H, c, block_row_operator(H), wp.empty_like(c))
+        return self._dev
 
     def _energy(self, u, ind) -> float:
         vals = {"params": self._params}
-        _, c, product = self._deviatoric()
-        product.matvec(u.dof_values, c, self._dev_work, 1.0, 2.0)  # H_dev u + 2 c
-        e = 0.5 * wp.utils.array_inner(u.dof_values, self._dev_work)
+        dev = self._deviatoric()
+        dev.product.matvec(u.dof_values, dev.c, dev.work, 1.0, 2.0)  # H_dev u + 2 c
+        e = 0.5 * wp.utils.array_inner(u.dof_values, dev.work)
         e += fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals)
         e += self._barrier_energy(u)
         if ind.count:
@@ -102,9 +111,9 @@ class Assembly:
         """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""
         vals = {"params": self._params}
         f = {"u": self.u, "v": self._test}
-        _, c, product = self._deviatoric()
-        g = wp.empty_like(c)
-        product.matvec(self.u.dof_values, c, g, 1.0, 1.0)  # H_dev u + c
+        dev = self._deviatoric()
+        g = wp.empty_like(dev.c)
+        dev.product.matvec(self.u.dof_values, dev.c, g, 1.0, 1.0)  # H_dev u + c
         fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
                       output=g, add=True)
         if self._barrier_energy(self.u) > 0.0:  # 0 where every det F is above the threshold (the usual case)
@@ -126,7 +135,7 @@ class Assembly:
         the volumetric part is added tet by tet (volumetric_hessian.py), each other part through its blocks' places in
         the sum (``_sum_slots``), one launch per part instead of a sparse matrix sum."""
         f = {"du": self._trial, "v": self._test}
-        H_dev, _, _ = self._deviatoric()
+        H_dev = self._deviatoric().H
         if self._H is None:
             self._H = wp.sparse.bsr_copy(H_dev)
         parts = {}
@@ -163,7 +172,7 @@ class Assembly:
             self._H_parts.pop("contact", None)
             self._H_slots.pop("contact", None)
         subset = self._contact_sides.current
-        if subset is None or subset.quadrature is None:
+        if subset.quadrature is None:  # nothing touches
             return None
         return self._assemble("contact", contact.contact_hessian_form, subset.quadrature,
                               {"du": subset.trial, "v": subset.test},
@@ -197,7 +206,7 @@ class Assembly:
                 rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(offsets))
                 return rows * M.ncol + M.columns.numpy()[:offsets[-1]]
 
-            into, own = keys(self._H_dev), keys(part)
+            into, own = keys(self._deviatoric().H), keys(part)
             index = np.searchsorted(into, own)  # a BSR matrix's blocks are sorted by row, then column
             if np.any(index >= len(into)) or np.any(into[np.minimum(index, len(into) - 1)] != own):
                 raise RuntimeError(f"the {name} Hessian has a block outside the elements' sparsity")

@@ -25,11 +25,13 @@ import warp.fem as fem
 
 @dataclass(frozen=True)
 class SideSubset:
+    """The chosen sides; without any (nothing touches) every field but ``mask`` and ``points`` is None."""
+
     mask: np.ndarray  # bool, one per touchable side
-    quadrature: fem.RegularQuadrature
-    trial: fem.Field
-    test: fem.Field
-    qp_base: wp.array  # (subset sides,) int: the full quadrature's index of each subset side's first point
+    quadrature: fem.RegularQuadrature | None
+    trial: fem.Field | None
+    test: fem.Field | None
+    qp_base: wp.array | None  # (subset sides,) int: the full quadrature's index of each subset side's first point
     points: int  # quadrature points per side
 
 
@@ -46,7 +48,7 @@ class ContactSides:
 
     def update(self, stiff: np.ndarray) -> bool:
         """``stiff``: bool per quadrature point of the full contact quadrature (any indenter). True if the subset was
-        made anew (the caller's matrix for it is then out of date)."""
+        made anew (the caller's matrix for it is then out of date); ``current`` is set after the first call."""
         points = len(stiff) // self._neighbours.shape[0]
         touching = stiff.reshape(-1, points).any(axis=1).astype(np.float64)
         needed = (self._neighbours @ touching) > 0.0
@@ -58,7 +60,7 @@ class ContactSides:
         self.current = self._subset(mask, points)
         return True
 
-    def _subset(self, mask: np.ndarray, points: int) -> SideSubset | None:
+    def _subset(self, mask: np.ndarray, points: int) -> SideSubset:
         if not mask.any():
             return SideSubset(mask, None, None, None, None, points)
         chosen = np.flatnonzero(mask)

@@ -95,12 +95,6 @@ def deformation_gradient(grad_u: wp.mat33d):
 
 
 @fem.integrand
-def deviatoric_energy_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d)):
-    F = deformation_gradient(fem.grad(u, s))
-    return _f(0.5) * params[s.element_index][0] * (wp.ddot(F, F) - _f(3.0))
-
-
-@fem.integrand
 def volumetric_energy_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d)):
     F = deformation_gradient(fem.grad(u, s))
     mu = params[s.element_index][0]

@@ -236,7 +236,9 @@ class LinearSolver:
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
         self._free_map: tuple | None = None  # (H's block columns, gather, CSC indices, CSC indptr): ``_free_matrix``
-        self._analysed: tuple[sp.csc_matrix, object] | None = None  # (pattern, CHOLMOD analysis of it)
+        # CHOLMOD's analysis of the free-dof matrices' pattern (None without CHOLMOD): made on the first matrix of a
+        # sparsity (``_solve_direct``); ``_free_matrix`` forgets it when the sparsity changes
+        self._analysed = None
         # the host path's BLAS (numpy's, scipy's and CHOLMOD's OpenBLAS) held to one thread: see ``_solve_direct``
         self._blas: ThreadpoolController | None = None  # made on the first host solve
         self._converged_iterations = 0  # CG iterations of the last converged device solve
@@ -291,8 +293,7 @@ class LinearSolver:
         A = self._free_matrix(H)
         cholmod = _cholmod()  # loaded before the BLAS controller below is made, so that it finds CHOLMOD's OpenBLAS
         if self._analysed is None and cholmod is not None:  # on every stored entry, zero or not: the elements'
-            pattern = _pattern(A)  # sparsity, which every later matrix shares
-            self._analysed = (pattern, cholmod.analyze(pattern))
+            self._analysed = cholmod.analyze(_pattern(A))  # sparsity, which every later matrix shares
         b = rhs.numpy().reshape(-1)[self._free]
         if self._blas is None:
             self._blas = ThreadpoolController()
@@ -309,8 +310,8 @@ class LinearSolver:
     def _free_matrix(self, H: BsrMatrix) -> sp.csc_matrix:
         """H's free rows and columns as a CSC matrix (every stored entry, zero or not). The first call for a sparsity
         finds where each of H's stored values goes (a matrix of their indices taken through the conversion and the
-        slicing); later calls, the same sparsity (assembly.py keeps it), only gather the values: 2 ms instead of 20-90 ms
-        of conversion, slicing and sorting per solve on the 2-core CPU (13.7k dofs)."""
+        slicing); later calls, the same sparsity (assembly.py keeps it), only gather the values: on the tiny press fixture
+        (13.7k dofs, 2-core CPU, cProfile) about 7 ms per solve against about 22 ms of conversion and slicing."""
         nnz = int(H.offsets.numpy()[-1])
         columns = H.columns.numpy()[:nnz]
         cached = self._free_map
@@ -332,18 +333,13 @@ class LinearSolver:
                 self.last_iterations = iterations
                 return x
         with self._blas.limit(limits=self._factor_threads, user_api="blas"):
-            factor = _factorise(A, definite, self._analysis())
+            factor = _factorise(A, definite, self._analysed)
         self.factorisations += 1
         if factor is None:
             return None
         self._lu = factor
         self.last_iterations = 1
         return self._lu.solve(b)
-
-    def _analysis(self):
-        """CHOLMOD's symbolic analysis of the free-dof matrices' pattern (None without CHOLMOD): made on the first
-        matrix of a sparsity (``_solve_direct``; ``_free_matrix`` forgets it when the sparsity changes)."""
-        return self._analysed[1] if self._analysed is not None else None
 
     def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:
         """The last system's matrix solved for another right-hand side ``rhs`` (nodes, 3; 0 on the fixed

@@ -125,8 +125,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
         self._poses: list[np.ndarray] | None = None
-        self._H_dev = None  # the Hessian's constant deviatoric part (assembly.py ``_deviatoric``), and
-        self._c_dev = self._dev_product = self._dev_work = None  # the term's gradient at u = 0, H_dev's product, a buffer
+        self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._volumetric = None  # the tet-by-tet volumetric Hessian's set-up (volumetric_hessian.py), made on first use
         self._H = None  # the summed Hessian (``_hessian``), and each part's places in it (``_sum_slots``)
