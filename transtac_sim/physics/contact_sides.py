@@ -2,8 +2,9 @@
 
 Contact's energy, gradient and state are integrated over every side an indenter can touch (solver.py
 ``_touchable_sides``), but its Hessian is zero at every quadrature point without a normal or friction stiffness (the
-contact state, contact.py ``ContactState``): on the tiny press fixture 43 of 2940 points touch, and warp.fem's assembly
-over all of them took 20 of the 56 ms of a Newton Hessian on the 2-core CPU (scripts/fem_phase_profile.py).
+contact state, contact.py ``ContactState``), which is all but a small patch under the indenter: integrated over these
+sides only, a Newton Hessian of the tiny press fixture took 18 instead of 35 ms on the 2-core CPU
+(scripts/fem_phase_profile.py, BENCHMARKS.md ``fem_host_path_cpu``).
 
 ``ContactSides.update`` finds the sides with such a point, adds the sides that share a vertex with them (contact
 spreads between Newton iterations), and keeps the subset while it holds them all; where contact reaches beyond it,

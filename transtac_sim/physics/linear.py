@@ -180,8 +180,8 @@ def _pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int,
     is not positive definite along a search direction, or, from iteration ``PCG_RATE_CHECK`` on, where the mean
     residual reduction per iteration so far, (|r_k| / |b|)^(1/k), would need more than 1.5 ``maxiter`` iterations to
     reach rtol. The caller then factorises the matrix anew; on the tiny press fixture (2-core CPU) the kept
-    factorisation's PCG failed in 7 of 18 Newton systems, after its whole cap of 20 iterations (6 ms each), and 6 of
-    the 7 showed it by iteration 6 (|r| still 0.1-0.3 |b|), while every PCG that converged was then below 0.03 |b|."""
+    factorisation's PCG that fails runs its whole cap of 20 iterations before the matrix is
+    factorised anyway; with this test ``solve`` took 160 instead of 173 ms per call (scripts/fem_phase_profile.py)."""
     x = np.zeros_like(b) if x0 is None else x0.copy()
     r = b.copy() if x0 is None else b - A @ x
     b_norm = np.sqrt(_dot(b, b))
@@ -289,7 +289,8 @@ class LinearSolver:
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
         against 38 ms on one thread, and the process 10 s of system time in 15 s. The numeric factorisation alone
         takes the process's BLAS threads (as found on the first solve: all cores, or a ``generate`` worker's share):
-        on the 2-core CPU 117 ms with 2 threads against 181 ms with one (13.7k dofs)."""
+        on the 2-core CPU ``solve`` took 173 instead of 199 ms per call with it (tiny press fixture,
+        scripts/fem_phase_profile.py)."""
         A = self._free_matrix(H)
         cholmod = _cholmod()  # loaded before the BLAS controller below is made, so that it finds CHOLMOD's OpenBLAS
         if self._analysed is None and cholmod is not None:  # on every stored entry, zero or not: the elements'
@@ -311,7 +312,8 @@ class LinearSolver:
         """H's free rows and columns as a CSC matrix (every stored entry, zero or not). The first call for a sparsity
         finds where each of H's stored values goes (a matrix of their indices taken through the conversion and the
         slicing); later calls, the same sparsity (assembly.py keeps it), only gather the values: on the tiny press fixture
-        (13.7k dofs, 2-core CPU, cProfile) about 7 ms per solve against about 22 ms of conversion and slicing."""
+        (13.7k dofs, 2-core CPU, ``python -m cProfile scripts/fem_frame_timing.py tests/fixtures/tiny_press.toml``) about 7 ms
+        per solve against about 22 ms of conversion and slicing."""
         nnz = int(H.offsets.numpy()[-1])
         columns = H.columns.numpy()[:nnz]
         cached = self._free_map

@@ -10,8 +10,9 @@ acts) with ``clamp``: elasticity.py's module docstring says why. At the centroid
 gradient (phi = l (2 l - 1) with l = 1/4), so only a tet's 6 edge nodes couple, each edge node's g the sum of its two
 vertices' barycentric gradients: 36 blocks a tet (P1: its 4 vertices, 16 blocks).
 
-warp.fem's generic assembly evaluated the integrand once per pair of the tet's 10 nodes: 33 ms per Hessian for the tiny
-press fixture's 3267 tets on the 2-core CPU (scripts/fem_phase_profile.py), for blocks most of which are zero. Here one
+warp.fem's generic assembly evaluated the integrand once per pair of the tet's 10 nodes, for blocks most of which are
+zero: with this assembly instead, a Newton Hessian of the tiny press fixture (3267 tets) took 35 instead of 68 ms on the
+2-core CPU (scripts/fem_phase_profile.py, BENCHMARKS.md ``fem_host_path_cpu``). Here one
 thread per tet writes its blocks, then one thread per receiving block of the sum adds them in a fixed order (a list
 made once): the same sums in a deterministic order on every device.
 """
