@@ -63,7 +63,8 @@ class PhaseClock:
         self.calls: dict[str, int] = defaultdict(int)
         self.linear_iterations: list[int] = []
         self.linear_solver: LinearSolver | None = None
-        self._not_definite_before = 0  # the LinearSolver's count at the last reset
+        self._not_definite_before = 0  # the LinearSolver's counts at the last reset
+        self._factorisations_before = 0
         self._stack: list[list] = []  # [name, start, child seconds]
 
     def wrap(self, cls, name: str):
@@ -96,11 +97,17 @@ class PhaseClock:
         self.calls.clear()
         self.linear_iterations.clear()
         self._not_definite_before = self.linear_solver.not_definite if self.linear_solver else 0
+        self._factorisations_before = self.linear_solver.factorisations if self.linear_solver else 0
 
     @property
     def not_definite(self) -> int:
         """Device solves stopped at non-positive curvature since the last reset."""
         return self.linear_solver.not_definite - self._not_definite_before if self.linear_solver else 0
+
+    @property
+    def factorisations(self) -> int:
+        """Host (direct path) factorisations since the last reset, failed ones (not positive definite) included."""
+        return self.linear_solver.factorisations - self._factorisations_before if self.linear_solver else 0
 
 
 def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
@@ -180,7 +187,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if gpu_activity:
         print_gpu_activity(activity, total)
         return
-    print(f"device solves stopped at non-positive curvature: {clock.not_definite}")
+    print(f"device solves stopped at non-positive curvature: {clock.not_definite}; host factorisations: "
+          f"{clock.factorisations}")
     print("| phase | calls | s | ms per call | share |")
     print("|---|---|---|---|---|")
     for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):

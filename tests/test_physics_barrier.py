@@ -18,7 +18,7 @@ from transtac_sim.physics import (
     SolverSettings,
 )
 from transtac_sim.physics.box_mesh import box_tet_mesh
-from transtac_sim.physics.linear import bsr_to_scipy
+from transtac_sim.physics.host_factorisation import bsr_to_scipy
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import fem_stability as fs  # noqa: E402

@@ -84,41 +84,63 @@ def _sphere_on_block(friction, poisson=0.45, settings: SolverSettings = SolverSe
     return V, QuasiStaticSolver(V, T, ElasticMaterial(0.5, poisson), [sphere], settings)
 
 
-@pytest.mark.parametrize(("friction", "lag_moves"), [(0.0, 4), (0.5, 4), (0.5, 1)])
-def test_slide_friction_force_and_marker_drag(friction, lag_moves):
-    """Coulomb's law once the sphere slides, with friction's lag moved up to 4 times per step (the default) or once
-    (``friction_lag_moves``, as scenes/train_random.toml)."""
+def _slide(friction: float, lag_moves: int = 4):
+    """The sphere pressed 0.3 mm, then slid 3 x 0.15 mm along x: (mesh vertices, the press, the three slide frames)."""
     V, solver = _sphere_on_block(friction, settings=SolverSettings(friction_lag_moves=lag_moves))
     P = _lift(2.0 + 2.0 + 1e-3)
     solver.start([P])
     P = _lift(2.0 + 2.0 - 0.3)
     press = solver.solve_frame([P])
-    normal = -press.forces_n[0, 2]
-    assert normal > 0
     results = []
     for _k in range(3):
         P = P.copy()
         P[0, 3] += 0.15
         results.append(solver.solve_frame([P]))
-    last = results[-1]
+    assert -press.forces_n[0, 2] > 0
     assert all(r.record.converged and r.record.min_det_f > 0 for r in results)
     assert all(r.record.lag_updates <= lag_moves * r.record.substeps for r in results)
-    fx = last.forces_n[0, 0]
+    return V, P, results
+
+
+def test_frictionless_slide_equals_pressing_there_directly():
+    """Frictionless elasticity is path independent: no tangential force, and the gel as if pressed there at once."""
+    _, P, results = _slide(0.0)
+    last = results[-1]
+    assert abs(last.forces_n[0, 0]) < 0.02 * -last.forces_n[0, 2]
+    _, direct = _sphere_on_block(0.0)
+    start = P.copy()
+    start[2, 3] = 2.0 + 2.0 + 1e-3
+    direct.start([start])
+    ref = direct.solve_frame([P]).displacement_mm
+    np.testing.assert_allclose(last.displacement_mm, ref, atol=0.02 * np.abs(ref).max())
+
+
+@pytest.fixture(scope="module")
+def lag_converged_slide():
+    """The slide with friction 0.5 and friction's lag moved up to 12 times per step: its fixed point converged
+    (BENCHMARKS.md ``fem_friction_lag_moves``)."""
+    return _slide(0.5, lag_moves=12)
+
+
+def test_slide_friction_is_coulombs_law(lag_converged_slide):
+    """Fully sliding after 0.45 mm: tangential force = mu x normal force within 10 % (the sphere also ploughs the
+    gel: its leading side's pressure adds to the tangential force), markers dragged along."""
+    V, _, results = lag_converged_slide
+    last = results[-1]
+    np.testing.assert_allclose(last.forces_n[0, 0] / -last.forces_n[0, 2], 0.5, rtol=0.1)
     top = (np.abs(V[:, 2] - 2.0) < 1e-9) & (np.linalg.norm(V[:, :2], axis=1) < 0.3)
-    drag = last.displacement_mm[top, 0].mean()
-    if friction == 0.0:
-        assert abs(fx) < 0.02 * normal
-        # frictionless elasticity is path independent: sliding there equals pressing there directly
-        _, direct = _sphere_on_block(0.0)
-        start = P.copy()
-        start[2, 3] = 2.0 + 2.0 + 1e-3
-        direct.start([start])
-        ref = direct.solve_frame([P]).displacement_mm
-        np.testing.assert_allclose(last.displacement_mm, ref, atol=0.02 * np.abs(ref).max())
-    else:
-        # fully sliding after 0.45 mm: tangential force = mu * normal force (Coulomb), markers dragged along
-        np.testing.assert_allclose(fx / -last.forces_n[0, 2], friction, rtol=0.1)
-        assert drag > 0.05
+    assert last.displacement_mm[top, 0].mean() > 0.05
+
+
+@pytest.mark.parametrize(("lag_moves", "rtol"), [(4, 0.01), (1, 0.08)])
+def test_slide_friction_with_few_lag_moves_is_near_the_converged_lag(lag_converged_slide, lag_moves, rtol):
+    """With friction's lag moved up to 4 times per step (the default) or once (``friction_lag_moves``, as
+    scenes/train_random.toml), the friction ratio of each slide frame is within ``rtol`` of the lag-converged one.
+    Measured: 4 moves within 0.1 %; 1 move within 3.5 % (where in Newton the single move happens decides it)."""
+    _, _, reference = lag_converged_slide
+    _, _, results = _slide(0.5, lag_moves)
+    ratio = [r.forces_n[0, 0] / -r.forces_n[0, 2] for r in results]
+    np.testing.assert_allclose(ratio, [r.forces_n[0, 0] / -r.forces_n[0, 2] for r in reference], rtol=rtol)
 
 
 def _press_sphere(settings: SolverSettings, depth: float = 0.3):

@@ -21,14 +21,8 @@ from transtac_sim.physics import (
     elasticity,
 )
 from transtac_sim.physics.box_mesh import gel_block
-from transtac_sim.physics.linear import (
-    PCG_RATE_CHECK,
-    SHIFTS,
-    LinearSolver,
-    _pcg,
-    _project_fixed_blocks,
-    bsr_to_scipy,
-)
+from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
+from transtac_sim.physics.linear import SHIFTS, LinearSolver, _project_fixed_blocks
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
@@ -198,19 +192,48 @@ def test_free_matrix_gathers_each_new_hessian():
 
 
 def test_kept_factorisation_pcg_gives_up_early_where_it_would_not_converge():
-    """``_pcg`` with a poor preconditioner (the factorisation of another matrix) stops before its cap where its rate
+    """``pcg`` with a poor preconditioner (the factorisation of another matrix) stops before its cap where its rate
     so far cannot reach the tolerance in time, converges with a good one, and does nothing from a solution."""
     rng = np.random.default_rng(0)
     n = 400
     L = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n)).tocsc()
     A = (L + sp.diags(rng.uniform(0.01, 100.0, n))).tocsc()  # badly scaled: L's factor is a poor preconditioner
     b = rng.standard_normal(n)
-    x, iterations = _pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20)
+    x, iterations = pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20)
     assert x is None and PCG_RATE_CHECK <= iterations < 20
-    x, iterations = _pcg(A, b, spla.factorized(A), 1e-6, 20)
+    x, iterations = pcg(A, b, spla.factorized(A), 1e-6, 20)
     assert x is not None and iterations <= 2 and np.linalg.norm(A @ x - b) <= 1e-6 * np.linalg.norm(b)
-    x_again, iterations = _pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20, x0=x)
+    x_again, iterations = pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20, x0=x)
     assert iterations == 0 and np.array_equal(x_again, x)  # started at a solution: nothing to do
+
+
+def test_direct_path_solves_to_the_forcing_term_with_its_kept_factorisation():
+    """The direct path's Newton systems after the first are solved by PCG with the kept factorisation to Newton's
+    relative tolerance (linear.py ``_solve_free``), on to ``cg_tol`` where the solution is below ``exact_below``, and
+    from ``guess`` where one is given; a new factorisation solves exactly."""
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("direct", solver._fixed_nodes, solver.device)
+    g = solver._gradient(ind).numpy()
+    g[solver._fixed_nodes] = 0.0
+    rhs = wp.array(-g, dtype=wp.vec3d)
+
+    def residual(H, du):  # |b - A x| / |b| on the free dofs
+        A = linear._free_matrix(H)
+        b = -g.reshape(-1)[linear._free]
+        return np.linalg.norm(b - A @ du.numpy().reshape(-1)[linear._free]) / np.linalg.norm(b)
+
+    H = solver._hessian(ind, 1.0, True)  # the clamped Hessian: positive definite
+    first = linear.solve(H, rhs, rtol=0.05)
+    assert linear.factorisations == 1 and residual(H, first) < 1e-10  # factorised: exact whatever the tolerance
+    H = solver._hessian(ind, 1.0, False)  # the exact Hessian: the kept factorisation is another matrix's
+    loose = linear.solve(H, rhs, rtol=0.05)
+    assert linear.factorisations == 1 and 1e-4 < residual(H, loose) <= 0.05
+    tight = linear.solve(solver._hessian(ind, 1.0, False), rhs, rtol=0.05, exact_below=1e3)
+    assert linear.factorisations == 1 and residual(H, tight) <= linear.cg_tol
+    iterations = linear.last_iterations
+    guess = tight.numpy()
+    again = linear.solve(solver._hessian(ind, 1.0, False), rhs, rtol=0.05, guess=guess)
+    assert linear.last_iterations == 0 and np.array_equal(again.numpy(), guess) and iterations > 0
 
 
 def test_contact_outside_the_indenters_box_makes_no_query():

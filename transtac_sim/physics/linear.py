@@ -1,18 +1,22 @@
 """Linear solves for the Newton steps: H du = -g with some degrees of freedom fixed (du = 0 there).
 
 - ``"direct"``: a sparse Cholesky (CHOLMOD) or LU (SuperLU) factorisation on the host, on the free
-  rows/columns only (see ``_factorise``). Fastest on the CPU for the mesh sizes used here. The factorisation
-  is kept: later Newton steps are solved by conjugate gradients preconditioned with it (a few iterations while
-  the Hessian has changed little) and the matrix is factorised again only when that does not converge in
-  ``reuse_max_iterations`` (or its rate shows by iteration ``PCG_RATE_CHECK`` that it will not). The numeric
-  factorisation runs on the BLAS threads the process has (the solves on one: see ``_solve_direct``). ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
+  rows/columns only (host_factorisation.py). Fastest on the CPU for the mesh sizes used here. The factorisation
+  is kept: later Newton steps are solved by conjugate gradients preconditioned with it, to Newton's forcing term
+  (inexact Newton, as on the device: loose far from the solution, ``cg_tol`` near it), from the step estimate where
+  Newton has one (``guess``), and the matrix is factorised again only when that does not converge in
+  ``reuse_max_iterations`` (or its rate shows by iteration ``PCG_RATE_CHECK`` that it will not). With the forcing term
+  instead of 1e-6 for every system, and Newton's estimate changes (newton.py), the tiny press fixture's frames 0-1 take 4
+  factorisations instead of 8 (2-core CPU, scripts/fem_phase_profile.py; BENCHMARKS.md ``fem_host_inexact_newton_cpu``).
+  The numeric factorisation runs on the BLAS threads the process has (the solves on one: see
+  ``_solve_direct``). ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
   finds the matrix is not positive definite (Newton then takes the clamped Hessian, see newton.py).
 - ``"cg"``: conjugate gradients with a block-Jacobi preconditioner on the solver's device (the GPU path), stopping
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
   returns None), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
   projected out in place (``_project_fixed_blocks``). Its relative tolerance is Newton's forcing term
-  (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` is a relative residual
-  of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
+  (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both paths) is a
+  relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
   press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
   forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
   a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
@@ -33,12 +37,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 import warp as wp
 from threadpoolctl import ThreadpoolController
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
+from transtac_sim.physics.host_factorisation import cholmod_module, factorise, pcg, sparsity_pattern
 from transtac_sim.physics.sparse_product import block_row_operator, block_row_range, diagonal_block
 
 
@@ -90,78 +94,9 @@ def _free_part(v: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), out
     out[i] = wp.cw_mul(v[i], wp.vec3d(wp.float64(1.0) - f[0], wp.float64(1.0) - f[1], wp.float64(1.0) - f[2]))
 
 
-def bsr_to_scipy(A: BsrMatrix) -> sp.csr_matrix:
-    nnz = int(A.offsets.numpy()[-1])
-    bs = A.block_shape
-    values = A.values.numpy()[:nnz].reshape(nnz, *bs)
-    M = sp.bsr_matrix((values, A.columns.numpy()[:nnz], A.offsets.numpy()), shape=A.shape)
-    return M.tocsr()
-
-
-class _Factor:
-    """A factorisation of the free-dof Hessian: ``solve(b)``, ``shape`` and which library made it."""
-
-    def __init__(self, solve, shape, kind: str):
-        self.solve, self.shape, self.kind = solve, shape, kind
-
-
 #: lambda of the device's last resort, H + lambda |diag(H)|, tried in turn; at 100 the block-Jacobi-preconditioned
 #: system is close to the identity and CG converges in a few iterations
 SHIFTS = (1.0e-2, 1.0, 1.0e2)
-
-
-def _cholmod():
-    """scikit-sparse's CHOLMOD module, or None where it is not installed (e.g. the GPU bundle)."""
-    try:
-        from sksparse import cholmod
-    except ImportError:
-        return None
-    return cholmod
-
-
-def _factorise(A: sp.csc_matrix, definite: bool = False, symbolic=None) -> _Factor | None:
-    """Factorises the (symmetric, normally positive definite) free-dof Hessian; with ``definite``, None where
-    CHOLMOD finds it is not positive definite (the caller then tries a Hessian that is).
-
-    CHOLMOD's supernodal Cholesky (scikit-sparse) when installed: for P2 meshes of 10^4-10^5 dofs it is an
-    order of magnitude faster than SuperLU. ``symbolic``: a CHOLMOD analysis (fill-reducing ordering and the
-    factor's structure) of a pattern that contains A's; only the numeric factorisation is then done (the
-    ordering was half of each factorisation: 186 of 350 ms on the tiny press fixture's 13.6k dofs). Otherwise, or
-    if the matrix is not positive definite, SuperLU: first without partial pivoting (DiagPivotThresh 0, keeps the
-    symmetric minimum-degree ordering: about half the fill of threshold pivoting), then, if that breaks down (a
-    tiny pivot of an indefinite matrix: non-finite or inaccurate result), with pivoting."""
-    cholmod = _cholmod()
-    if cholmod is not None:
-        try:
-            factor = symbolic.cholesky(A) if symbolic is not None else cholmod.cholesky(A)
-            return _Factor(factor.solve_A, A.shape, "cholmod")
-        except cholmod.CholmodNotPositiveDefiniteError:
-            if definite:
-                return None
-    b = A @ np.ones(A.shape[0])
-    try:
-        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0})
-        x = lu.solve(b)
-        if np.all(np.isfinite(x)) and np.max(np.abs(x - 1.0)) <= 1.0e-6:
-            return _Factor(lu.solve, A.shape, "superlu")
-    except RuntimeError:  # exactly singular pivot
-        pass
-    lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
-    return _Factor(lu.solve, A.shape, "superlu-pivoting")
-
-
-def _pattern(A: sp.spmatrix) -> sp.csc_matrix:
-    """A's stored entries (explicit zeros too) as a matrix of ones."""
-    P = sp.csc_matrix(A, copy=True)
-    P.data[:] = 1.0
-    return P
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """Inner product without BLAS: numpy's threaded ddot (n > 10^4) leaves its OpenBLAS threads spinning,
-    and the CHOLMOD solve that follows (another OpenBLAS, on the same cores) then took 0.11 s instead of
-    0.007 s on the 2-core CPU (13k dofs)."""
-    return float(np.add.reduce(a * b))
 
 
 #: the direct path's step estimate (``solve_last``) is solved to this relative residual first, and on to the one asked
@@ -169,53 +104,12 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
 #: press fixture (2-core CPU) 24 instead of 31 ms per estimate, the same Newton iterations and forces
 ESTIMATE_RTOL = 1.0e-2
 
-#: ``_pcg`` gives up from this iteration on where its mean rate so far would need over 1.5 x its iteration cap
-PCG_RATE_CHECK = 6
-
-
-def _pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int,
-         x0: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
-    """Conjugate gradients preconditioned by ``M`` (a solve with an earlier factorisation), from ``x0`` (default 0);
-    (x, iterations) once |b - A x| <= rtol |b|, (None, iterations) if not within ``maxiter`` iterations, if A
-    is not positive definite along a search direction, or, from iteration ``PCG_RATE_CHECK`` on, where the mean
-    residual reduction per iteration so far, (|r_k| / |b|)^(1/k), would need more than 1.5 ``maxiter`` iterations to
-    reach rtol. The caller then factorises the matrix anew; on the tiny press fixture (2-core CPU) the kept
-    factorisation's PCG that fails runs its whole cap of 20 iterations before the matrix is
-    factorised anyway; with this test ``solve`` took 160 instead of 173 ms per call (scripts/fem_phase_profile.py)."""
-    x = np.zeros_like(b) if x0 is None else x0.copy()
-    r = b.copy() if x0 is None else b - A @ x
-    b_norm = np.sqrt(_dot(b, b))
-    stop = rtol * b_norm
-    if np.sqrt(_dot(r, r)) <= stop:
-        return x, 0
-    z = M(r)
-    p = z.copy()
-    rz = _dot(r, z)
-    for k in range(1, maxiter + 1):
-        Ap = A @ p
-        pAp = _dot(p, Ap)
-        if not pAp > 0.0:
-            break
-        alpha = rz / pAp
-        x += alpha * p
-        r -= alpha * Ap
-        r_norm = np.sqrt(_dot(r, r))
-        if r_norm <= stop:
-            return (x, k) if np.all(np.isfinite(x)) else (None, k)
-        if k >= PCG_RATE_CHECK and not k * np.log(rtol) / np.log(min(r_norm / b_norm, 1.0 - 1e-12)) <= 1.5 * maxiter:
-            return None, k
-        z = M(r)
-        rz_new = _dot(r, z)
-        p = z + (rz_new / rz) * p
-        rz = rz_new
-    return None, maxiter
-
 
 class LinearSolver:
     """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
 
     def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-4, cg_maxiter: int = 20000,
-                 reuse_max_iterations: int = 20, reuse_rtol: float = 1.0e-6):
+                 reuse_max_iterations: int = 20):
         if method not in ("direct", "cg"):
             raise ValueError(f"unknown linear solver {method!r}")
         self.method = method
@@ -228,7 +122,6 @@ class LinearSolver:
         self._fixed = wp.array(fixed.astype(np.float64), dtype=wp.vec3d, device=device)  # 1 where fixed
         self.last_iterations = 0
         self.reuse_max_iterations = reuse_max_iterations
-        self.reuse_rtol = reuse_rtol
         self.factorisations = 0
         self.shifted_solves = 0  # device systems solved only with a Levenberg-Marquardt shift (``SHIFTS``)
         self.last_shift = 0.0  # the shift lambda of the last solve's result (0: a Newton step)
@@ -245,19 +138,20 @@ class LinearSolver:
         self._last_cg: tuple | None = None  # the last converged device system's (matrix, preconditioner)
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
-              rtol: float | None = None, exact_below: float = 0.0) -> wp.array | None:
+              rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device). ``H`` is changed: its fixed rows and columns are projected out
         in place (the caller assembles it anew for each system, assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
-        the direct path solves exactly either way. Without ``definite``, a system the device CG does not solve is
-        shifted (``_solve_shifted``)."""
+        on the direct path a new factorisation solves exactly. ``guess`` (nodes, 3): where the direct path's PCG
+        starts (Newton's step estimate for the same right-hand side; the device CG starts from 0). Without
+        ``definite``, a system the device CG does not solve is shifted (``_solve_shifted``)."""
         self.forget()
         self.last_shift = 0.0
         if self.method == "direct":
-            return self._solve_direct(H, rhs, definite)
+            return self._solve_direct(H, rhs, definite, rtol or self.cg_tol, exact_below, guess)
         x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)
         if x is not None or definite:
             return x
@@ -283,7 +177,8 @@ class LinearSolver:
                 return x
         return None
 
-    def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False) -> wp.array | None:
+    def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False, rtol: float = 0.0,
+                      exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
         """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,
         scipy's, CHOLMOD's) spin-wait against each other and the next Warp kernel on few cores; on the 2-core CPU
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
@@ -292,15 +187,16 @@ class LinearSolver:
         on the 2-core CPU ``solve`` took 173 instead of 199 ms per call with it (tiny press fixture,
         scripts/fem_phase_profile.py)."""
         A = self._free_matrix(H)
-        cholmod = _cholmod()  # loaded before the BLAS controller below is made, so that it finds CHOLMOD's OpenBLAS
+        cholmod = cholmod_module()  # loaded before the BLAS controller below is made, so that it finds CHOLMOD's OpenBLAS
         if self._analysed is None and cholmod is not None:  # on every stored entry, zero or not: the elements'
-            self._analysed = cholmod.analyze(_pattern(A))  # sparsity, which every later matrix shares
+            self._analysed = cholmod.analyze(sparsity_pattern(A))  # sparsity, which every later matrix shares
         b = rhs.numpy().reshape(-1)[self._free]
         if self._blas is None:
             self._blas = ThreadpoolController()
             self._factor_threads = min(lib["num_threads"] for lib in self._blas.select(user_api="blas").info())
         with self._blas.limit(limits=1, user_api="blas"):
-            x_free = self._solve_free(A, b, definite)
+            x_free = self._solve_free(A, b, definite, rtol, exact_below,
+                                      None if guess is None else guess.reshape(-1)[self._free])
         if x_free is None:
             return None
         self._last_free = A
@@ -328,14 +224,22 @@ class LinearSolver:
         data = H.values.numpy().reshape(-1)[gather]
         return sp.csc_matrix((data, indices, indptr), shape=(len(self._free), len(self._free)))
 
-    def _solve_free(self, A: sp.csc_matrix, b: np.ndarray, definite: bool = False) -> np.ndarray | None:
+    def _solve_free(self, A: sp.csc_matrix, b: np.ndarray, definite: bool = False, rtol: float = 0.0,
+                    exact_below: float = 0.0, x0: np.ndarray | None = None) -> np.ndarray | None:
+        """The free dofs' solution: PCG with the kept factorisation from ``x0`` to ``rtol`` (on to ``cg_tol`` where
+        it is below ``exact_below`` mm), else a new factorisation's exact solve (None: not positive definite, with
+        ``definite``)."""
         if self._lu is not None and self._lu.shape == A.shape:
-            x, iterations = _pcg(A, b, self._lu.solve, self.reuse_rtol, self.reuse_max_iterations)
+            loose = max(rtol, self.cg_tol)
+            x, iterations = pcg(A, b, self._lu.solve, loose, self.reuse_max_iterations, x0)
+            if x is not None and loose > self.cg_tol and np.max(np.abs(x)) < exact_below:
+                x, more = pcg(A, b, self._lu.solve, self.cg_tol, self.reuse_max_iterations, x)
+                iterations += more
             if x is not None:
                 self.last_iterations = iterations
                 return x
         with self._blas.limit(limits=self._factor_threads, user_api="blas"):
-            factor = _factorise(A, definite, self._analysed)
+            factor = factorise(A, definite, self._analysed)
         self.factorisations += 1
         if factor is None:
             return None
@@ -357,9 +261,9 @@ class LinearSolver:
             return None
         b = rhs.reshape(-1)[self._free]
         with self._blas.limit(limits=1, user_api="blas"):
-            x, _ = _pcg(self._last_free, b, self._lu.solve, max(rtol, ESTIMATE_RTOL), self.reuse_max_iterations)
+            x, _ = pcg(self._last_free, b, self._lu.solve, max(rtol, ESTIMATE_RTOL), self.reuse_max_iterations)
             if x is not None and rtol < ESTIMATE_RTOL and np.max(np.abs(x)) < exact_below:
-                x, _ = _pcg(self._last_free, b, self._lu.solve, rtol, self.reuse_max_iterations, x)
+                x, _ = pcg(self._last_free, b, self._lu.solve, rtol, self.reuse_max_iterations, x)
         if x is None:
             return None
         out = np.zeros(3 * self._node_count)

@@ -44,6 +44,14 @@ almost everywhere) Newton then converges linearly. The device CG now stops at it
 curvature (definite_cg.py), so the device tries the exact Hessian first as the host path does, and solves its
 systems to a tighter forcing term (``FORCING_MAX`` 0.01: an exact-Hessian step solved to 0.1 wastes the Hessian's
 accuracy): press_slide frames 1-5 in 82 Newton iterations instead of 111, 1.26x faster on an H100.
+
+Issue 12, fifth pass, the host path (BENCHMARKS.md ``fem_host_inexact_newton_cpu``): the host solved every Newton system
+to a relative residual of 1e-6, factorising anew wherever the kept factorisation's PCG could not get there. It now solves
+to the forcing term as the device does (linear.py), from the step estimate where there is one, and no step is estimated
+right after a lag move (on the tiny press fixture such an estimate never showed convergence: the move shifts the
+solution). Tiny press fixture, frames 0-1 on the 2-core CPU: 8 -> 4 factorisations, 18 -> 14 Newton iterations,
+4.9-5.2 -> 3.8-4.0 s. On an H100 (the estimate skip is the only device-path change) train_random sequences 0-7 took
+1193 against 1233 Newton iterations (``fem_lag_estimate_gpu``).
 """
 
 from __future__ import annotations
@@ -53,7 +61,8 @@ import warp as wp
 import warp.fem as fem
 from scipy.spatial.transform import Rotation
 
-#: Inexact Newton (Eisenstat & Walker 1996): the device CG solves each Newton system to a relative residual
+#: Inexact Newton (Eisenstat & Walker 1996): the CG (device; on the host, preconditioned with the kept factorisation,
+#: linear.py) solves each Newton system to a relative residual
 #: of min(FORCING_MAX, |g| / |g_first|), |g_first| the gradient at the (sub)step's first pass: loose while
 #: far from the solution, where an exact Newton step is wasted, and tightening in proportion to |g| (which
 #: keeps Newton's convergence quadratic). scripts/bench_linear_solvers.py: CG iterations against tolerance.
@@ -74,9 +83,10 @@ class NewtonSteps:
         move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
         when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
         was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
-        the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation),
-        otherwise it is the full Newton step itself. The device CG solves each system to the forcing
-        tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
+        the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation; not
+        right after a lag move, where the step is seldom converged), otherwise it is the full Newton step itself;
+        the estimate also starts the next system's solve on the host. The linear solver solves each system to
+        the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
         convergence a penetration above ``penetration_tol_mm`` raises the contact stiffness
         (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E
         (quadratic interpolation) never accepts a step that makes any det F <= 0. Iterations count Newton steps
@@ -98,7 +108,7 @@ class NewtonSteps:
             estimate = self._linear.solve_last(-g_np, exact_below=10.0 * tol) if full_step else None
             remaining = float(np.max(np.abs(estimate))) if estimate is not None else np.inf
             if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
-                lags, energy_here = lags + 1, None
+                lags, energy_here, full_step = lags + 1, None, False
                 continue
             if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
                 energy_here = None
@@ -118,12 +128,12 @@ class NewtonSteps:
             iterations += 1
             energy = energy_here if energy_here is not None else self._energy(self.u, ind)
             rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
-            rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)  # CG only: the direct path is exact
+            rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)
             ladder = self._hessian_ladder()
             for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
                 # near convergence (the step below 100 tol) the step's length decides the convergence test
                 du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
-                                        rtol=rtol, exact_below=100.0 * tol)
+                                        rtol=rtol, exact_below=100.0 * tol, guess=estimate)
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
