@@ -11,6 +11,7 @@ from transtac_sim.physics import (
     RigidIndenter,
     SolverDidNotConverge,
     SolverSettings,
+    newton,
 )
 from transtac_sim.physics.box_mesh import box_tet_mesh, gel_block
 
@@ -231,6 +232,28 @@ def test_carried_warm_start_shifts_an_affine_field_exactly():
     expected[solver._fixed_nodes] = 0.0
     assert 0 < inside.sum() < len(X)
     np.testing.assert_allclose(carried, expected, rtol=0.0, atol=1e-12)
+
+
+def test_stalled_step_is_halved_but_the_smallest_sub_step_may_not_stall(monkeypatch):
+    """newton.py gives a (sub)step up after ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less, but
+    only where it can still be halved. With every step counted as short (STALL_ALPHA 1) and one enough to stall, the
+    whole press and its half stall and the frame is solved in quarter steps (the smallest of 2 halvings), to the state
+    of the press in one step."""
+    V, T, fixed = _roller_block()
+
+    def press(max_substep_halvings):
+        solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()],
+                                   SolverSettings(max_substep_halvings=max_substep_halvings), fixed=fixed)
+        solver.start([_lift(2.0 + 1.0 + 1e-3)])
+        return solver.solve_frame([_lift(2.0 + 1.0 - 0.1)])
+
+    whole = press(2)
+    assert whole.record.substeps == 1
+    monkeypatch.setattr(newton, "STALL_ALPHA", 1.0)
+    monkeypatch.setattr(newton, "STALL_STEPS", 1)
+    quarters = press(2)
+    assert quarters.record.converged and quarters.record.substeps == 4
+    np.testing.assert_allclose(quarters.displacement_mm, whole.displacement_mm, rtol=0, atol=1e-6)
 
 
 def test_failed_step_is_halved_from_the_last_converged_sub_step():

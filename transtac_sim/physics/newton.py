@@ -71,13 +71,23 @@ from scipy.spatial.transform import Rotation
 #: and 9.2-9.3 s with 0.1, the same CG iterations in all.
 FORCING_MAX = 0.01
 
+#: A (sub)step that can still be halved gives up once this many Newton steps in a row were cut to STALL_ALPHA or less
+#: by the line search: Newton is then creeping along the inversion barrier (elasticity.py) with the clamped Hessian, and
+#: halves of the step converge far sooner. train_random sequence 0 (the cone) on an H100, frames 4 and 5: the whole
+#: frame's step ran all 120 iterations (about 5 halvings each, 2,200 CG iterations per system, |g| rising from 6 to 35 N
+#: while E fell) and failed, 16 of the frame's 17-22 s, before its halves converged in 12-81 iterations
+#: (scripts/trace_sequence.py --newton; BENCHMARKS.md ``fem_newton_stall_gpu``).
+STALL_STEPS = 10
+STALL_ALPHA = 1.0 / 16.0
+
 
 class NewtonSteps:
     """Newton's method for ``QuasiStaticSolver`` (which provides the fields, assembly and linear solver)."""
 
-    def _newton(self, ind) -> tuple[bool, int, str, float]:
+    def _newton(self, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
         """Minimises E over u, from self.u, for one (sub)step: (converged, Newton iterations, why not, the
-        largest penetration (mm) at the solution).
+        largest penetration (mm) at the solution). With ``may_stall`` (the step can still be halved) it gives up after
+        ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less.
 
         Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag
         move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
@@ -95,7 +105,7 @@ class NewtonSteps:
         s = self.settings
         tol = s.newton_tol_mm
         friction = any(i.friction > 0 for i in self.indenters)
-        iterations, raises, lags, full_step, inverted = 0, 0, 0, False, False
+        iterations, raises, lags, full_step, inverted, short_steps = 0, 0, 0, False, False, 0
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
         while True:
@@ -179,6 +189,10 @@ class NewtonSteps:
                 continue
             wp.copy(self.u.dof_values, self._u_try.dof_values)
             full_step, energy_here = alpha == 1.0, e_try
+            short_steps = short_steps + 1 if alpha <= STALL_ALPHA else 0
+            if may_stall and short_steps == STALL_STEPS:
+                return False, iterations, (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} "
+                                           "or less by the line search"), 0.0
 
     def _newton_iteration_cap(self) -> int:
         """``max_newton_iterations``, or its default for the linear solver in use (settings.py)."""
@@ -288,8 +302,9 @@ class NewtonSteps:
         values[self._fixed_nodes] = 0.0
         return wp.array(values, dtype=wp.vec3d, device=self.device)
 
-    def _solve_step(self, poses, prev_poses) -> tuple[bool, int, str, float]:
-        """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result."""
+    def _solve_step(self, poses, prev_poses, may_stall: bool = False) -> tuple[bool, int, str, float]:
+        """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result
+        (``may_stall``: see there)."""
         ind = self._indenter_struct(poses, prev_poses)
         wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
         # first lag: the contact of the last converged state, where it was (with the previous poses), or that of
@@ -299,7 +314,7 @@ class NewtonSteps:
         if self._warm_start(ind, step):
             wp.copy(self.u_lag.dof_values, self.u.dof_values)
             self._update_lag(ind)
-        ok, iterations, why, pen = self._newton(ind)
+        ok, iterations, why, pen = self._newton(ind, may_stall)
         self._last_ind = ind
         if ok:
             du = wp.clone(self.u.dof_values)

@@ -8,7 +8,8 @@ This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs) and t
 its gradient and Hessian is in assembly.py. The Newton iteration of one (sub)step is in newton.py: warm start
 from the extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a
 line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
-A step that does not converge or leaves a penetration above ``penetration_tol_mm`` is retried with half the
+A step that does not converge (or stalls: newton.py ``STALL_STEPS``) or leaves a penetration above
+``penetration_tol_mm`` is retried with half the
 pose increment from the last converged sub-step, and the rest of the frame goes on in steps of that size (adaptive
 load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame); past that, ``SolverDidNotConverge`` says
 which frame, which indenters and what was tried. Nothing half-solved is ever returned.
@@ -268,7 +269,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             target = [_interpolate_pose(A, B, (done + size) / whole)
                       for A, B in zip(self._poses, poses, strict=False)]
             wp.copy(self.u_prev.dof_values, self.u.dof_values)  # the last converged state: Newton starts there
-            ok, it, why, pen = self._solve_step(target, prev)
+            ok, it, why, pen = self._solve_step(target, prev, may_stall=size > 1)
             total_iterations += it
             if ok and pen > self.settings.penetration_tol_mm:
                 ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
