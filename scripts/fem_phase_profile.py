@@ -117,7 +117,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
-         cg_tol: float | None = typer.Option(None, help="the device CG's tight tolerance (default LinearSolver's)"),
+         cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
@@ -145,8 +145,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     failures = []
     solve_step = QuasiStaticSolver._solve_step
 
-    def noting_failures(self, poses, prev_poses):  # a failed (sub)step makes the frame sub-step: say why
-        result = solve_step(self, poses, prev_poses)
+    def noting_failures(self, *args, **kwargs):  # a failed (sub)step makes the frame sub-step: say why
+        result = solve_step(self, *args, **kwargs)
         if not result[0]:
             failures.append(f"frame {self.frame_index}: {result[2]} after {result[1]} Newton iterations")
         return result

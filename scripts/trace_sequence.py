@@ -88,9 +88,9 @@ def _trace_solver() -> None:
               f"{self._linear.shifted_solves} shifted device solves so far", flush=True)
         return result
 
-    def logged_step(self, poses, prev_poses):
+    def logged_step(self, poses, *args, **kwargs):
         t0 = time.perf_counter()
-        ok, iterations, why, pen = solve_step(self, poses, prev_poses)
+        ok, iterations, why, pen = solve_step(self, poses, *args, **kwargs)
         print(f"  sub-step to z {poses[0][2, 3]:.4f} mm: {time.perf_counter() - t0:.1f} s, {iterations} Newton "
               f"iterations, {'converged' if ok else 'failed: ' + why}, penetration {pen:.3g} mm, "
               f"{dict(self.stats)}", flush=True)
@@ -103,9 +103,9 @@ def _trace_solver() -> None:
                   f"after {result.iterations} of {maxiter} iterations, rtol {rtol:.1e}", flush=True)
         return result
 
-    def logged_direct(self, H, rhs, definite=False):
+    def logged_direct(self, *args, **kwargs):
         t0 = time.perf_counter()
-        x = solve_direct(self, H, rhs, definite)
+        x = solve_direct(self, *args, **kwargs)
         print(f"    host solve of {len(self._free)} dofs: {time.perf_counter() - t0:.1f} s, {self.factorisations} "
               f"factorisation(s) so far", flush=True)
         return x

@@ -205,6 +205,8 @@ def test_kept_factorisation_pcg_gives_up_early_where_it_would_not_converge():
     assert x is not None and iterations <= 2 and np.linalg.norm(A @ x - b) <= 1e-6 * np.linalg.norm(b)
     x_again, iterations = pcg(A, b, spla.factorized(L.tocsc()), 1e-6, 20, x0=x)
     assert iterations == 0 and np.array_equal(x_again, x)  # started at a solution: nothing to do
+    x_negative, iterations = pcg((-A).tocsc(), -b, spla.factorized(A), 1e-6, 20, x0=-x)
+    assert x_negative is None and iterations == 0  # a solution, but of a matrix that is not positive definite along it
 
 
 def test_direct_path_solves_to_the_forcing_term_with_its_kept_factorisation():

@@ -1,5 +1,6 @@
 """The host (direct) path's pieces for linear.py: a sparse Cholesky (CHOLMOD) or LU (SuperLU) factorisation of the
-free-dof Hessian, and conjugate gradients preconditioned with a kept factorisation (``pcg``), on scipy matrices."""
+free-dof Hessian, conjugate gradients preconditioned with a kept factorisation (``pcg``), on scipy matrices, and
+``bsr_to_scipy`` (a Warp block matrix as a scipy one)."""
 
 from __future__ import annotations
 
@@ -83,16 +84,22 @@ PCG_RATE_CHECK = 6
 
 
 def pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int,
-         x0: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
+        x0: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
     """Conjugate gradients preconditioned by ``M`` (a solve with an earlier factorisation), from ``x0`` (default 0);
     (x, iterations) once |b - A x| <= rtol |b|, (None, iterations) if not within ``maxiter`` iterations, if A
-    is not positive definite along a search direction, or, from iteration ``PCG_RATE_CHECK`` on, where the mean
+    is not positive definite along ``x0`` or a search direction, or, from iteration ``PCG_RATE_CHECK`` on, where the mean
     residual reduction per iteration so far, (|r_k| / |b|)^(1/k), would need more than 1.5 ``maxiter`` iterations to
     reach rtol. The caller then factorises the matrix anew; on the tiny press fixture (2-core CPU) the kept
     factorisation's PCG that fails runs its whole cap of 20 iterations before the matrix is
     factorised anyway; with this test ``solve`` took 160 instead of 173 ms per call (scripts/fem_phase_profile.py)."""
-    x = np.zeros_like(b) if x0 is None else x0.copy()
-    r = b.copy() if x0 is None else b - A @ x
+    if x0 is None or not np.any(x0):
+        x, r = np.zeros_like(b), b.copy()
+    else:  # a start that is returned as it is (within rtol) must not hide a matrix that is not positive definite
+        x = x0.copy()
+        Ax = A @ x
+        if not _dot(x, Ax) > 0.0:
+            return None, 0
+        r = b - Ax
     b_norm = np.sqrt(_dot(b, b))
     stop = rtol * b_norm
     if np.sqrt(_dot(r, r)) <= stop:

@@ -145,8 +145,8 @@ class LinearSolver:
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
-        on the direct path a new factorisation solves exactly. ``guess`` (nodes, 3): where the direct path's PCG
-        starts (Newton's step estimate for the same right-hand side; the device CG starts from 0). Without
+        on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
+        ``guess`` (nodes, 3): where the direct path's PCG starts (Newton's step estimate for the same right-hand side; the device CG starts from 0). Without
         ``definite``, a system the device CG does not solve is shifted (``_solve_shifted``)."""
         self.forget()
         self.last_shift = 0.0

@@ -87,14 +87,16 @@ class NewtonSteps:
     def _newton(self, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
         """Minimises E over u, from self.u, for one (sub)step: (converged, Newton iterations, why not, the
         largest penetration (mm) at the solution). With ``may_stall`` (the step can still be halved) it gives up after
-        ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less.
+        ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less (counted afresh after a lag move or a
+        stiffness raise: they change E).
 
         Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag
         move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
         when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
         was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
         the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation; not
-        right after a lag move, where the step is seldom converged), otherwise it is the full Newton step itself;
+        after a lag move made on an estimate, where the step is seldom converged), otherwise it is the full Newton
+        step itself;
         the estimate also starts the next system's solve on the host. The linear solver solves each system to
         the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
         convergence a penetration above ``penetration_tol_mm`` raises the contact stiffness
@@ -118,7 +120,7 @@ class NewtonSteps:
             estimate = self._linear.solve_last(-g_np, exact_below=10.0 * tol) if full_step else None
             remaining = float(np.max(np.abs(estimate))) if estimate is not None else np.inf
             if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
-                lags, energy_here, full_step = lags + 1, None, False
+                lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                 continue
             if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
                 energy_here = None
@@ -130,7 +132,7 @@ class NewtonSteps:
                 pen = self._raise_stiffness(ind, raises)
                 if pen is not None:
                     return True, iterations, "", pen
-                raises, full_step = raises + 1, False
+                raises, full_step, short_steps = raises + 1, False, 0
                 continue
             if iterations == self._newton_iteration_cap():
                 why = " (line-search steps cut short by inverted elements, det F <= 0)" if inverted else ""
@@ -180,12 +182,12 @@ class NewtonSteps:
                     return False, iterations, why, 0.0
                 wp.copy(self.u.dof_values, self._u_try.dof_values)
                 if friction and lags < s.friction_lag_moves and self._move_lag(ind, 0.0):
-                    lags, full_step = lags + 1, True
+                    lags, full_step, short_steps = lags + 1, True, 0
                     continue
                 pen = self._raise_stiffness(ind, raises)
                 if pen is not None:
                     return True, iterations, "", pen
-                raises, full_step = raises + 1, False
+                raises, full_step, short_steps = raises + 1, False, 0
                 continue
             wp.copy(self.u.dof_values, self._u_try.dof_values)
             full_step, energy_here = alpha == 1.0, e_try

@@ -20,7 +20,7 @@ class IndenterStartsInsideGel(ValueError):
 class SolverSettings:
     degree: int = 2  # element order (1: linear tets, 2: quadratic tets)
     newton_tol_mm: float = 1.0e-5  # converged when max |Newton step| is below this
-    # per (sub)step; None: 40 with the direct solver, 120 with CG. On the device path (inexact CG, the clamped Hessian
+    # per (sub)step; None: 40 with the direct solver, 120 with CG. On the device path (CG, the clamped Hessian
     # where the exact one is not positive definite) Newton converges linearly where the inversion barrier acts; a sub-step starts that work again from the last
     # converged state, so a higher cap is cheaper there: a cube edge pressed 1.5 mm (train_random sequence 4,
     # frames 0-3, one H100) took 38.7 s of physics with 120 against 101.8 s with 40 (16 sub-steps in frame 2;
