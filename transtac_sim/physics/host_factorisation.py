@@ -111,7 +111,7 @@ def pcg(A: sp.csc_matrix, b: np.ndarray, M, rtol: float, maxiter: int,
         Ap = A @ p
         pAp = _dot(p, Ap)
         if not pAp > 0.0:
-            break
+            return None, k
         alpha = rz / pAp
         x += alpha * p
         r -= alpha * Ap

@@ -146,8 +146,9 @@ class LinearSolver:
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
-        ``guess`` (nodes, 3): where the direct path's PCG starts (Newton's step estimate for the same right-hand side; the device CG starts from 0). Without
-        ``definite``, a system the device CG does not solve is shifted (``_solve_shifted``)."""
+        ``guess`` (nodes, 3): where the direct path's PCG starts (Newton's step estimate for the same right-hand
+        side; the device CG starts from 0). Without ``definite``, a system the device CG does not solve is shifted
+        (``_solve_shifted``)."""
         self.forget()
         self.last_shift = 0.0
         if self.method == "direct":
@@ -230,11 +231,7 @@ class LinearSolver:
         it is below ``exact_below`` mm), else a new factorisation's exact solve (None: not positive definite, with
         ``definite``)."""
         if self._lu is not None and self._lu.shape == A.shape:
-            loose = max(rtol, self.cg_tol)
-            x, iterations = pcg(A, b, self._lu.solve, loose, self.reuse_max_iterations, x0)
-            if x is not None and loose > self.cg_tol and np.max(np.abs(x)) < exact_below:
-                x, more = pcg(A, b, self._lu.solve, self.cg_tol, self.reuse_max_iterations, x)
-                iterations += more
+            x, iterations = self._kept_pcg(A, b, max(rtol, self.cg_tol), self.cg_tol, exact_below, x0)
             if x is not None:
                 self.last_iterations = iterations
                 return x
@@ -246,6 +243,16 @@ class LinearSolver:
         self._lu = factor
         self.last_iterations = 1
         return self._lu.solve(b)
+
+    def _kept_pcg(self, A: sp.csc_matrix, b: np.ndarray, loose: float, tight: float, exact_below: float,
+                  x0: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
+        """PCG with the kept factorisation from ``x0`` to ``loose``, then on to ``tight`` where the solution is below
+        ``exact_below`` mm: (x or None, iterations)."""
+        x, iterations = pcg(A, b, self._lu.solve, loose, self.reuse_max_iterations, x0)
+        if x is not None and loose > tight and np.max(np.abs(x)) < exact_below:
+            x, more = pcg(A, b, self._lu.solve, tight, self.reuse_max_iterations, x)
+            iterations += more
+        return x, iterations
 
     def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:
         """The last system's matrix solved for another right-hand side ``rhs`` (nodes, 3; 0 on the fixed
@@ -261,9 +268,7 @@ class LinearSolver:
             return None
         b = rhs.reshape(-1)[self._free]
         with self._blas.limit(limits=1, user_api="blas"):
-            x, _ = pcg(self._last_free, b, self._lu.solve, max(rtol, ESTIMATE_RTOL), self.reuse_max_iterations)
-            if x is not None and rtol < ESTIMATE_RTOL and np.max(np.abs(x)) < exact_below:
-                x, _ = pcg(self._last_free, b, self._lu.solve, rtol, self.reuse_max_iterations, x)
+            x, _ = self._kept_pcg(self._last_free, b, max(rtol, ESTIMATE_RTOL), rtol, exact_below)
         if x is None:
             return None
         out = np.zeros(3 * self._node_count)

@@ -96,9 +96,8 @@ class NewtonSteps:
         was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
         the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation; not
         after a lag move made on an estimate, where the step is seldom converged), otherwise it is the full Newton
-        step itself;
-        the estimate also starts the next system's solve on the host. The linear solver solves each system to
-        the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
+        step itself; the estimate also starts the next system's solve on the host. The linear solver solves each
+        system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
         convergence a penetration above ``penetration_tol_mm`` raises the contact stiffness
         (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E
         (quadratic interpolation) never accepts a step that makes any det F <= 0. Iterations count Newton steps
