@@ -18,7 +18,8 @@ Python, host reads), and more work per launch (larger or batched systems) comes 
 To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 0: every CG solve to its
 tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
 last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tight CG tolerance, relative
-residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--warp-cg``
+residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--float64-cg-matrix``
+(the device CG's product on the float64 matrix, as before it read a float32 copy), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
@@ -41,7 +42,7 @@ import warp as wp
 from warp.optim.linear import cg
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import QuasiStaticSolver, linear, newton
+from transtac_sim.physics import QuasiStaticSolver, linear, newton, sparse_product
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.scene_setup import load_setup
@@ -117,6 +118,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
+         float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
+         spmv_lanes: int | None = typer.Option(None, min=1, help="threads per block row of the CG's product"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
@@ -128,9 +131,14 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if no_estimate:
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
     if warp_spmv:
-        linear.block_row_operator = lambda H: H
+        linear.block_row_operator = lambda H, single_precision=False: H
+    if float64_cg_matrix:
+        float64_operator = linear.block_row_operator
+        linear.block_row_operator = lambda H, single_precision=False: float64_operator(H)
     if warp_cg:
         linear.definite_cg = _warp_cg
+    if spmv_lanes is not None:
+        sparse_product.LANES = spmv_lanes
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
     reference = np.load(compare_to) if compare_to else None

@@ -67,6 +67,22 @@ def test_block_row_product_matches_scipy():
                                atol=1e-12 * np.abs(A @ x.reshape(-1)).max())
 
 
+def test_single_precision_product_reads_the_matrix_rounded_to_float32():
+    """The device CG's product (``single_precision``) equals scipy's product with the blocks rounded to float32 (its
+    arithmetic is float64), and differs from the float64 product by no more than that rounding allows."""
+    H = _pressed_hessian()
+    A = bsr_to_scipy(H)
+    rounded = A.astype(np.float32).astype(np.float64)
+    assert abs(rounded - A).max() > 0.0  # the rounding does change entries
+    x = np.random.default_rng(2).standard_normal((H.nrow, 3))
+    z = wp.zeros(H.nrow, dtype=wp.vec3d)
+    block_row_operator(H, single_precision=True).matvec(wp.array(x, dtype=wp.vec3d), z, z, 1.0, 0.0)
+    expected = rounded @ x.reshape(-1)
+    np.testing.assert_allclose(z.numpy().reshape(-1), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    bound = 2.0 ** -24 * (abs(A) @ np.abs(x.reshape(-1)))  # each entry within 2^-24 of itself
+    assert np.all(np.abs(z.numpy().reshape(-1) - A @ x.reshape(-1)) <= bound * (1 + 1e-9) + 1e-15)
+
+
 def test_fixed_projection_matches_warp_fem():
     """(I - P) H (I - P) + P in place, block by block, equals warp.fem.project_linear_system's sparse products."""
     H = _pressed_hessian()

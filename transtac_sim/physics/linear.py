@@ -13,7 +13,8 @@
   finds the matrix is not positive definite (Newton then takes the clamped Hessian, see newton.py).
 - ``"cg"``: conjugate gradients with a block-Jacobi preconditioner on the solver's device (the GPU path), stopping
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
-  returns None), its matrix-vector product one warp per block row (sparse_product.py); the fixed rows/columns are
+  returns None), its matrix-vector product one warp per block row on the matrix rounded to float32 (sparse_product.py:
+  half the bytes of the product that is most of CG's time); the fixed rows/columns are
   projected out in place (``_project_fixed_blocks``). Its relative tolerance is Newton's forcing term
   (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both paths) is a
   relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
@@ -39,6 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 import warp as wp
 from threadpoolctl import ThreadpoolController
+from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
@@ -135,7 +137,7 @@ class LinearSolver:
         # the host path's BLAS (numpy's, scipy's and CHOLMOD's OpenBLAS) held to one thread: see ``_solve_direct``
         self._blas: ThreadpoolController | None = None  # made on the first host solve
         self._converged_iterations = 0  # CG iterations of the last converged device solve
-        self._last_cg: tuple | None = None  # the last converged device system's (matrix, preconditioner)
+        self._last_cg: tuple | None = None  # the last converged device system's (operator, preconditioner)
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
               rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
@@ -278,18 +280,17 @@ class LinearSolver:
     def _solve_last_cg(self, rhs: np.ndarray, rtol: float, exact_below: float) -> np.ndarray | None:
         if self._last_cg is None:
             return None
-        H, M = self._last_cg
+        A, M = self._last_cg
         b = wp.array(np.asarray(rhs).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
         x = wp.zeros_like(b)
-        converged, _ = self._cg(H, M, b, x, rtol, max(50, self._converged_iterations), exact_below)
+        converged, _ = self._cg(A, M, b, x, rtol, max(50, self._converged_iterations), exact_below)
         return x.numpy() if converged else None
 
-    def _cg(self, H, M, b: wp.array, x: wp.array, rtol: float, maxiter: int,
+    def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
             exact_below: float) -> tuple[bool, int]:
-        """CG on H x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
-        (converged, iterations). Not converged also where H is found not to be positive definite (definite_cg.py;
+        """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
+        (converged, iterations). Not converged also where A is found not to be positive definite (definite_cg.py;
         ``not_definite`` counts those; a NaN stops it the same way)."""
-        A = block_row_operator(H)
         result = definite_cg(A, b, x, rtol, maxiter, M)
         total = result.iterations
         if result.converged and rtol > self.cg_tol and exact_below > 0.0 \
@@ -312,10 +313,10 @@ class LinearSolver:
         b = wp.empty_like(rhs)
         wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
         x = wp.zeros_like(b)
-        M = BlockJacobi(H)
-        converged, self.last_iterations = self._cg(H, M, b, x, rtol, self.cg_maxiter, exact_below)
+        A, M = block_row_operator(H, single_precision=True), BlockJacobi(H)
+        converged, self.last_iterations = self._cg(A, M, b, x, rtol, self.cg_maxiter, exact_below)
         if not converged:
             return None
         self._converged_iterations = self.last_iterations
-        self._last_cg = (H, M)
+        self._last_cg = (A, M)
         return x

@@ -11,9 +11,17 @@ row, so the warp reads consecutive whole blocks (coalesced), and the lanes' 3-ve
 reduction: 40 us per call on the same matrix. Same arithmetic per block, another order of summation (results differ
 from ``bsr_mv`` by round-off). The stride is ``wp.block_dim()``, not ``LANES``: on the CPU Warp runs a group with
 fewer threads.
+
+With ``single_precision`` the product reads a copy of the blocks rounded to float32 (40 instead of 80 MB per product
+on press_slide) and does its arithmetic in float64: the device CG's matrix (linear.py). The rounding perturbs each
+entry by at most 2^-24 of itself, far below the CG's relative tolerances (1e-2 to 1e-4): it changes Newton's step,
+not its solution, which the float64 gradient decides. The deviatoric term's product (energies and gradients,
+assembly.py) stays float64.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 from warp.optim.linear import LinearOperator
@@ -48,7 +56,7 @@ def _block_row_product(
     offsets: wp.array(dtype=int),
     row_counts: wp.array(dtype=int),
     columns: wp.array(dtype=int),
-    blocks: wp.array(dtype=wp.mat33d),
+    blocks: wp.array(dtype=Any),
     x: wp.array(dtype=wp.vec3d),
     alpha: wp.float64,
     y: wp.array(dtype=wp.vec3d),
@@ -59,7 +67,7 @@ def _block_row_product(
     blocks_of_row = block_row_range(offsets, row_counts, row)
     partial = wp.vec3d()
     for k in range(blocks_of_row[0] + lane, blocks_of_row[1], wp.block_dim()):
-        partial += blocks[k] * x[columns[k]]
+        partial += wp.mat33d(blocks[k]) * x[columns[k]]
     total = wp.tile_sum(wp.tile(partial, preserve_type=True))
     if lane == 0:
         value = alpha * total[0]
@@ -68,15 +76,26 @@ def _block_row_product(
         z[row] = value
 
 
-def block_row_operator(A: BsrMatrix) -> LinearOperator:
+@wp.kernel(enable_backward=False)
+def _round_to_float32(blocks: wp.array(dtype=wp.mat33d), rounded: wp.array(dtype=wp.mat33f)):
+    k = wp.tid()
+    rounded[k] = wp.mat33f(blocks[k])
+
+
+def block_row_operator(A: BsrMatrix, single_precision: bool = False) -> LinearOperator:
     """``A`` (3x3 float64 blocks) as a ``warp.optim.linear`` operator whose product is ``_block_row_product``;
-    graph-capturable (one launch, no allocation)."""
+    graph-capturable (one launch, no allocation). ``single_precision``: the product reads A's blocks rounded to float32,
+    copied here (later changes to A are not seen)."""
     if A.block_shape != (3, 3) or A.scalar_type != wp.float64:
         raise ValueError(f"expected 3x3 float64 blocks, got {A.block_shape} {A.scalar_type}")
+    blocks = A.values
+    if single_precision:
+        blocks = wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
+        wp.launch(_round_to_float32, dim=len(blocks), device=A.device, inputs=[A.values, blocks])
 
     def matvec(x, y, z, alpha, beta):
         wp.launch_tiled(_block_row_product, dim=[A.nrow], block_dim=LANES, device=A.device,
-                        inputs=[A.offsets, A.row_counts, A.columns, A.values, x, wp.float64(alpha), y,
+                        inputs=[A.offsets, A.row_counts, A.columns, blocks, x, wp.float64(alpha), y,
                                 wp.float64(beta), z])
 
     return LinearOperator(A.shape, A.scalar_type, A.device, matvec)
