@@ -19,7 +19,8 @@ To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 
 tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
 last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tight CG tolerance, relative
 residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--float64-cg-matrix``
-(the device CG's product on the float64 matrix, as before it read a float32 copy), ``--warp-cg``
+(the device CG's product on the float64 matrix, as before it read a float32 copy), ``--fresh-cg-graphs`` (each device
+CG solve captures its own graph with its own work arrays, as before they were kept, physics/definite_cg.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
@@ -39,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import typer
 import warp as wp
-from warp.optim.linear import cg
+from warp.optim.linear import aslinearoperator, cg
 
 from transtac_sim.dataset.sequence import StageClock
 from transtac_sim.physics import QuasiStaticSolver, linear, newton, sparse_product
@@ -119,6 +120,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
          float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
+         fresh_cg_graphs: bool = typer.Option(False, help="no workspace kept between device CG solves"),
          spmv_lanes: int | None = typer.Option(None, min=1, help="threads per block row of the CG's product"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
@@ -131,12 +133,15 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if no_estimate:
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
     if warp_spmv:
-        linear.block_row_operator = lambda H, single_precision=False: H
+        linear.block_row_operator = lambda H, single_precision=False, rounded=None: aslinearoperator(H)
     if float64_cg_matrix:
         float64_operator = linear.block_row_operator
-        linear.block_row_operator = lambda H, single_precision=False: float64_operator(H)
+        linear.block_row_operator = lambda H, single_precision=False, rounded=None: float64_operator(H)
     if warp_cg:
         linear.definite_cg = _warp_cg
+    if fresh_cg_graphs:
+        kept_cg = linear.definite_cg
+        linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
     if spmv_lanes is not None:
         sparse_product.LANES = spmv_lanes
     if cg_tol is not None:
@@ -195,8 +200,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if gpu_activity:
         print_gpu_activity(activity, total)
         return
+    work = clock.linear_solver._work if clock.linear_solver else None
     print(f"device solves stopped at non-positive curvature: {clock.not_definite}; host factorisations: "
-          f"{clock.factorisations}")
+          f"{clock.factorisations}; device CG graphs captured in the kept workspace (all frames): "
+          f"{work.cg.captures if work else 0}")
     print("| phase | calls | s | ms per call | share |")
     print("|---|---|---|---|---|")
     for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):
@@ -211,7 +218,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
               f"total {sum(li)} over {len(li)} solves")
 
 
-def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0):
+def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None):
     """``definite_cg``'s interface on Warp's ``cg`` (which never reports an indefinite matrix)."""
     iterations, err, tol = cg(A, b, x, tol=rtol, atol=atol, maxiter=maxiter, M=M, check_every=25)
     return CgResult(float(err) <= float(tol), False, int(iterations))

@@ -6,7 +6,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
+from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
 
 N = 200  # 3-vectors
@@ -21,12 +21,13 @@ def _laplacian_3d(shift: float) -> sp.csr_matrix:
     return (sp.kron(lap, np.eye(3)) + sp.kron(sp.eye(N), coupling) - shift * sp.eye(3 * N)).tocsr()
 
 
-def _warp_bsr(A: sp.csr_matrix):
+def _warp_bsr(A: sp.csr_matrix, device=None):
     B = A.tobsr(blocksize=(3, 3))
     B.sort_indices()
     rows = np.repeat(np.arange(N), np.diff(B.indptr))
-    return wp.sparse.bsr_from_triplets(N, N, wp.array(rows, dtype=int), wp.array(B.indices, dtype=int),
-                                       wp.array(B.data, dtype=wp.mat33d))
+    return wp.sparse.bsr_from_triplets(N, N, wp.array(rows, dtype=int, device=device),
+                                       wp.array(B.indices, dtype=int, device=device),
+                                       wp.array(B.data, dtype=wp.mat33d, device=device))
 
 
 @pytest.mark.parametrize("jacobi", [False, True])
@@ -75,3 +76,43 @@ def test_block_jacobi_applies_the_inverse_diagonal_blocks():
     diagonal = np.stack([A[3 * i:3 * i + 3, 3 * i:3 * i + 3].toarray() for i in range(N)])
     expected = 0.5 * np.linalg.solve(diagonal, x[:, :, None])[:, :, 0] + 2.0 * y
     np.testing.assert_allclose(z.numpy(), expected, rtol=1e-12, atol=1e-12)
+
+
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_kept_workspace_solves_as_a_fresh_one(device: str):
+    """Solves that share a workspace (its vectors, state and, on CUDA, the graph captured by the first: linear.py's
+    Newton systems) give what a fresh solve gives, with another right-hand side, tolerance and iteration cap, and after
+    the matrix's values change in the same arrays; on CUDA only the first solve captures a graph. Run on the CPU, and
+    on a GPU where there is one (the device tool, not CI)."""
+    A = _laplacian_3d(0.0)
+    H = _warp_bsr(A, device)
+    rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=device)
+    inverse = wp.empty(N, dtype=wp.mat33d, device=device)
+    workspace, x = CgWorkspace(N, device), wp.zeros(N, dtype=wp.vec3d, device=device)
+    rng = np.random.default_rng(4)
+
+    def solve(b, rtol, maxiter, kept: bool):
+        op = block_row_operator(H, single_precision=True, rounded=rounded)
+        M = BlockJacobi(H, inverse=inverse)
+        out = x if kept else wp.zeros(N, dtype=wp.vec3d, device=device)
+        out.zero_()
+        result = definite_cg(op, wp.array(b, dtype=wp.vec3d, device=device), out, rtol, maxiter, M,
+                             workspace=workspace if kept else None)
+        return result, out.numpy()
+
+    for b, rtol, maxiter in [(rng.standard_normal((N, 3)), 1e-10, 3 * N), (rng.standard_normal((N, 3)), 1e-6, 7),
+                             (rng.standard_normal((N, 3)), 1e-8, 3 * N)]:
+        kept, x_kept = solve(b, rtol, maxiter, kept=True)
+        fresh, x_fresh = solve(b, rtol, maxiter, kept=False)
+        assert kept == fresh and (maxiter > 7 or kept.iterations == 7), (kept, fresh)
+        np.testing.assert_allclose(x_kept, x_fresh, rtol=1e-12, atol=1e-12 * np.abs(x_fresh).max())
+    H.values.assign(2.0 * H.values.numpy())  # the same arrays, another matrix: the solution halves
+    b = rng.standard_normal((N, 3))
+    before = spla.spsolve(A.tocsc(), b.reshape(-1))
+    kept, x_kept = solve(b, 1e-10, 3 * N, kept=True)
+    assert kept.converged
+    np.testing.assert_allclose(x_kept.reshape(-1), 0.5 * before, rtol=1e-5, atol=1e-7 * np.abs(before).max())
+    assert workspace.captures == (1 if device != "cpu" else 0)

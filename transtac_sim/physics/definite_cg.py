@@ -15,13 +15,18 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
     until |r| <= tol (= max(rtol |b|, atol)) or ``maxiter`` iterations.
 
 M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks) or none. It runs on the device like
-``warp.optim.linear.cg``: one iteration's kernels are captured once per solve, and with conditional CUDA graphs
+``warp.optim.linear.cg``: one iteration's kernels are captured in a CUDA graph, and with conditional CUDA graphs
 (CUDA 12.4+) the loop itself is captured too (``wp.capture_while``), so the host waits only for the end;
 otherwise the captured iteration is launched ``CHECK_EVERY`` times between host reads. An iteration is five
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
-entry), the update of p, and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration)
-is one small float64 array, so the kernels of a stopped solve do nothing. Dot products are block-wise tile sums
+entry), the update of p, and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
+iteration cap) is one small float64 array, so the kernels of a stopped solve do nothing. Dot products are block-wise tile sums
 added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
+
+A ``CgWorkspace`` keeps the work vectors, the state and the captured graphs between solves of one size (a solver's
+Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``, the preconditioner
+and x) launches that solve's graph instead of capturing and instantiating its own (press_slide on an H100: one graph
+for all its frames, 0.85-0.95x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``).
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector
 DOT_THREADS = 256
 
 # the state array's slots
-RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE = (wp.constant(k) for k in range(8))
+RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE, MAXITER = (wp.constant(k) for k in range(9))
 # why it stopped (the STOP slot)
 _STOPS = (1.0, 2.0, 3.0, 4.0)
 CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in _STOPS)
@@ -76,10 +81,10 @@ def _apply_blocks(inverse: wp.array(dtype=wp.mat33d), x: wp.array(dtype=wp.vec3d
 
 class BlockJacobi(LinearOperator):
     """The block-Jacobi preconditioner of a 3x3-block matrix: the inverses of its diagonal blocks
-    (``inverse_blocks``), usable as a ``warp.optim.linear`` operator too."""
+    (``inverse_blocks``, written into ``inverse`` where given), usable as a ``warp.optim.linear`` operator too."""
 
-    def __init__(self, A: BsrMatrix):
-        self.inverse_blocks = wp.empty(A.nrow, dtype=wp.mat33d, device=A.device)
+    def __init__(self, A: BsrMatrix, inverse: wp.array | None = None):
+        self.inverse_blocks = inverse if inverse is not None else wp.empty(A.nrow, dtype=wp.mat33d, device=A.device)
         wp.launch(_inverse_diagonal, dim=A.nrow, device=A.device,
                   inputs=[A.offsets, A.row_counts, A.columns, A.values, self.inverse_blocks])
 
@@ -141,7 +146,7 @@ def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: w
 
 
 @wp.kernel(enable_backward=False)
-def _decide(state: wp.array(dtype=wp.float64), maxiter: int, condition: wp.array(dtype=wp.int32)):
+def _decide(state: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
     """After an iteration's updates: the stop reason, the iteration count and whether to go on; clears the sums
     for the next iteration."""
     if state[ACTIVE] != wp.float64(0.0):
@@ -152,7 +157,7 @@ def _decide(state: wp.array(dtype=wp.float64), maxiter: int, condition: wp.array
             state[STOP] = CONVERGED
         elif not state[RZ_NEW] > wp.float64(0.0):
             state[STOP] = PRECONDITIONER_NOT_DEFINITE
-        elif state[ITER] >= wp.float64(maxiter):
+        elif state[ITER] >= state[MAXITER]:
             state[STOP] = ITERATION_CAP
         state[RZ] = state[RZ_NEW]
         if state[STOP] != wp.float64(0.0):
@@ -163,15 +168,33 @@ def _decide(state: wp.array(dtype=wp.float64), maxiter: int, condition: wp.array
     condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
 
 
+#: graphs a workspace keeps (the oldest is dropped): a solver's matrices change arrays only when their sparsity does
+KEPT_GRAPHS = 4
+
+
+class CgWorkspace:
+    """``definite_cg``'s work vectors (r, z, p, q), state and captured CUDA graphs, kept between solves of ``n``
+    3-vectors on ``device``."""
+
+    def __init__(self, n: int, device):
+        self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(4))
+        self.state = wp.zeros(9, dtype=wp.float64, device=device)
+        self.condition = wp.zeros(1, dtype=wp.int32, device=device)
+        self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
+        self.graphs: dict = {}  # (operator's graph_key, preconditioner, x) -> captured graph
+        self.captures = 0  # graphs captured (the rest of the solves on CUDA launched a kept one)
+
+
 def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
-                M: BlockJacobi | None = None, atol: float = 0.0) -> CgResult:
+                M: BlockJacobi | None = None, atol: float = 0.0, workspace: CgWorkspace | None = None) -> CgResult:
     """Solves A x = b from the given x (vec3d arrays, updated in place) to |b - A x| <= max(rtol |b|, atol),
-    stopping early where A (or M) is found not to be positive definite (x then holds the last iterate)."""
+    stopping early where A (or M) is found not to be positive definite (x then holds the last iterate).
+    ``workspace``: work arrays and graphs kept from earlier solves of the same size (a new one otherwise); a graph is
+    reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same."""
     device = b.device
-    r, z, p, q = (wp.empty_like(b) for _ in range(4))
-    state = wp.zeros(8, dtype=wp.float64, device=device)
-    condition = wp.zeros(1, dtype=wp.int32, device=device)
-    inverse = M.inverse_blocks if M is not None else wp.empty(0, dtype=wp.mat33d, device=device)
+    ws = workspace if workspace is not None and len(workspace.r) == len(b) else CgWorkspace(len(b), device)
+    r, z, p, q, state, condition = ws.r, ws.z, ws.p, ws.q, ws.state, ws.condition
+    inverse = M.inverse_blocks if M is not None else ws.no_preconditioner
 
     def tiled(kernel, *inputs):
         wp.launch_tiled(kernel, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device,
@@ -188,7 +211,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         return CgResult(True, False, 0)
     if not s[RZ_NEW] > 0.0:
         return CgResult(False, True, 0)
-    state.assign(np.array([s[RZ_NEW], 0.0, 0.0, 0.0, tol2, 0.0, 0.0, 1.0]))
+    state.assign(np.array([s[RZ_NEW], 0.0, 0.0, 0.0, tol2, 0.0, 0.0, 1.0, float(maxiter)]))
     condition.fill_(1)
 
     def iteration():
@@ -196,22 +219,32 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         tiled(_dot, p, q, state, PQ)
         tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
         wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p])
-        wp.launch(_decide, dim=1, device=device, inputs=[state, int(maxiter), condition])
+        wp.launch(_decide, dim=1, device=device, inputs=[state, condition])
 
-    iteration()  # outside any capture: loads the kernels' modules
     if device.is_cuda:
         conditional = wp.is_conditional_graph_supported()
-        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-            if conditional:
-                wp.capture_while(condition, iteration)
-            else:
-                iteration()
+        key = getattr(A, "graph_key", None)
+        key = key and (key, inverse.ptr, x.ptr)
+        graph = ws.graphs.get(key) if key else None
+        if graph is None:
+            iteration()  # outside any capture: loads the kernels' modules
+            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+                if conditional:
+                    wp.capture_while(condition, iteration)
+                else:
+                    iteration()
+            graph = capture.graph
+            ws.captures += 1
+            if key:
+                if len(ws.graphs) >= KEPT_GRAPHS:
+                    del ws.graphs[next(iter(ws.graphs))]
+                ws.graphs[key] = graph
         if conditional:
-            wp.capture_launch(capture.graph)
+            wp.capture_launch(graph)
         else:
             while int(condition.numpy()[0]):
                 for _ in range(CHECK_EVERY):
-                    wp.capture_launch(capture.graph)
+                    wp.capture_launch(graph)
     else:
         wp.capture_while(condition, iteration)
     s = state.numpy()

@@ -36,6 +36,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 import warp as wp
@@ -43,7 +45,7 @@ from threadpoolctl import ThreadpoolController
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
-from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
+from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
 from transtac_sim.physics.host_factorisation import cholmod_module, factorise, pcg, sparsity_pattern
 from transtac_sim.physics.sparse_product import block_row_operator, block_row_range, diagonal_block
 
@@ -107,6 +109,18 @@ SHIFTS = (1.0e-2, 1.0, 1.0e2)
 ESTIMATE_RTOL = 1.0e-2
 
 
+@dataclass
+class DeviceWork:
+    """What the device path keeps between solves, so that each solve finds the arrays of the last and its CG can launch
+    the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses and the matrix's float32
+    blocks (grown to the largest matrix)."""
+
+    cg: CgWorkspace
+    x: wp.array
+    inverse: wp.array
+    rounded: wp.array
+
+
 class LinearSolver:
     """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
 
@@ -138,6 +152,7 @@ class LinearSolver:
         self._blas: ThreadpoolController | None = None  # made on the first host solve
         self._converged_iterations = 0  # CG iterations of the last converged device solve
         self._last_cg: tuple | None = None  # the last converged device system's (operator, preconditioner)
+        self._work: DeviceWork | None = None  # the device path's kept arrays (``_device_work``)
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
               rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
@@ -282,20 +297,31 @@ class LinearSolver:
             return None
         A, M = self._last_cg
         b = wp.array(np.asarray(rhs).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
-        x = wp.zeros_like(b)
+        x = self._device_work().x
+        x.zero_()
         converged, _ = self._cg(A, M, b, x, rtol, max(50, self._converged_iterations), exact_below)
         return x.numpy() if converged else None
+
+    def _device_work(self) -> DeviceWork:
+        """The device path's arrays kept between solves (made on first use)."""
+        if self._work is None:
+            self._work = DeviceWork(CgWorkspace(self._node_count, self.device),
+                                    wp.empty(self._node_count, dtype=wp.vec3d, device=self.device),
+                                    wp.empty(self._node_count, dtype=wp.mat33d, device=self.device),
+                                    wp.empty(0, dtype=wp.mat33f, device=self.device))
+        return self._work
 
     def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
             exact_below: float) -> tuple[bool, int]:
         """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
         (converged, iterations). Not converged also where A is found not to be positive definite (definite_cg.py;
         ``not_definite`` counts those; a NaN stops it the same way)."""
-        result = definite_cg(A, b, x, rtol, maxiter, M)
+        cg = self._device_work().cg
+        result = definite_cg(A, b, x, rtol, maxiter, M, workspace=cg)
         total = result.iterations
         if result.converged and rtol > self.cg_tol and exact_below > 0.0 \
                 and float(np.max(np.abs(x.numpy()))) < exact_below:
-            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M)
+            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=cg)
             total += result.iterations
         self.not_definite += result.not_definite
         return result.converged, total
@@ -312,11 +338,15 @@ class LinearSolver:
                   inputs=[H.offsets, H.row_counts, H.columns, H.values, self._fixed])
         b = wp.empty_like(rhs)
         wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
-        x = wp.zeros_like(b)
-        A, M = block_row_operator(H, single_precision=True), BlockJacobi(H)
-        converged, self.last_iterations = self._cg(A, M, b, x, rtol, self.cg_maxiter, exact_below)
+        work = self._device_work()
+        if len(work.rounded) < len(H.values):  # the float32 blocks' buffer, grown to the matrix's capacity
+            work.rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=self.device)
+        A = block_row_operator(H, single_precision=True, rounded=work.rounded)
+        M = BlockJacobi(H, inverse=work.inverse)
+        work.x.zero_()
+        converged, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)
         if not converged:
             return None
         self._converged_iterations = self.last_iterations
         self._last_cg = (A, M)
-        return x
+        return wp.clone(work.x)  # the kept x is the next solve's

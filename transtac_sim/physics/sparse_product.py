@@ -82,20 +82,24 @@ def _round_to_float32(blocks: wp.array(dtype=wp.mat33d), rounded: wp.array(dtype
     rounded[k] = wp.mat33f(blocks[k])
 
 
-def block_row_operator(A: BsrMatrix, single_precision: bool = False) -> LinearOperator:
+def block_row_operator(A: BsrMatrix, single_precision: bool = False, rounded: wp.array | None = None) -> LinearOperator:
     """``A`` (3x3 float64 blocks) as a ``warp.optim.linear`` operator whose product is ``_block_row_product``;
     graph-capturable (one launch, no allocation). ``single_precision``: the product reads A's blocks rounded to float32,
-    copied here (later changes to A are not seen)."""
+    copied here into ``rounded`` where it is given and large enough (later changes to A are not seen). The operator's
+    ``graph_key`` names the arrays its product reads (definite_cg.py reuses a graph captured with the same ones)."""
     if A.block_shape != (3, 3) or A.scalar_type != wp.float64:
         raise ValueError(f"expected 3x3 float64 blocks, got {A.block_shape} {A.scalar_type}")
     blocks = A.values
     if single_precision:
-        blocks = wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
-        wp.launch(_round_to_float32, dim=len(blocks), device=A.device, inputs=[A.values, blocks])
+        blocks = rounded if rounded is not None and len(rounded) >= len(A.values) else \
+            wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
+        wp.launch(_round_to_float32, dim=len(A.values), device=A.device, inputs=[A.values, blocks])
 
     def matvec(x, y, z, alpha, beta):
         wp.launch_tiled(_block_row_product, dim=[A.nrow], block_dim=LANES, device=A.device,
                         inputs=[A.offsets, A.row_counts, A.columns, blocks, x, wp.float64(alpha), y,
                                 wp.float64(beta), z])
 
-    return LinearOperator(A.shape, A.scalar_type, A.device, matvec)
+    operator = LinearOperator(A.shape, A.scalar_type, A.device, matvec)
+    operator.graph_key = (A.nrow, A.offsets.ptr, A.row_counts.ptr if A.row_counts is not None else None, A.columns.ptr, blocks.ptr)
+    return operator
