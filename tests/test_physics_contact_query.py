@@ -1,0 +1,95 @@
+"""The contact's inside test and penetration depth (physics/contact.py ``penetration``) against an exact reference, on
+the library's sharp indenters: points near their vertices and edges, where a sign taken from the wrong face's normal
+would be wrong, and points spread over their bounding boxes.
+
+Reference (numpy, exact for a closed mesh): inside where the generalised winding number (the sum of the triangles'
+solid angles, Van Oosterom & Strackee 1983, over 4 pi) is 1, and the depth is the distance to the closest point of
+any triangle (Ericson, Real-Time Collision Detection, 5.1.5)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, contact
+from transtac_sim.physics.box_mesh import box_tet_mesh
+
+INDENTERS = Path(__file__).resolve().parents[1] / "scenes" / "indenters"
+
+
+@wp.kernel
+def _penetrations(ind: contact.Indenters, points: wp.array(dtype=wp.vec3d), depth: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    g, n = contact.penetration(ind, 0, points[i])
+    depth[i] = g
+
+
+def _winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    a, b, c = (triangles[None, :, k, :] - points[:, None, :] for k in range(3))
+    la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
+    numerator = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+    denominator = la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", b, c) * la \
+        + np.einsum("pfi,pfi->pf", c, a) * lb
+    return np.sum(2.0 * np.arctan2(numerator, denominator), axis=1) / (4.0 * np.pi)
+
+
+def _closest_distances(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Distance from each point to each triangle (Ericson 5.1.5, vectorised over points x triangles), minimised."""
+    p = points[:, None, :]
+    a, b, c = (triangles[None, :, k, :] for k in range(3))
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (np.einsum("pfi,pfi->pf", e, ap) for e in (np.broadcast_to(ab, ap.shape), np.broadcast_to(ac, ap.shape)))
+    bp, cp = p - b, p - c
+    d3, d4 = np.einsum("pfi,pfi->pf", np.broadcast_to(ab, bp.shape), bp), np.einsum("pfi,pfi->pf", np.broadcast_to(ac, bp.shape), bp)
+    d5, d6 = np.einsum("pfi,pfi->pf", np.broadcast_to(ab, cp.shape), cp), np.einsum("pfi,pfi->pf", np.broadcast_to(ac, cp.shape), cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        v, w = vb * denom, vc * denom
+        closest = a + ab * v[..., None] + ac * w[..., None]  # inside the face
+        regions = [  # (condition, closest point), the first that holds wins: vertices, then edges
+            ((d1 <= 0) & (d2 <= 0), np.broadcast_to(a, closest.shape)),
+            ((d3 >= 0) & (d4 <= d3), np.broadcast_to(b, closest.shape)),
+            ((d6 >= 0) & (d5 <= d6), np.broadcast_to(c, closest.shape)),
+            ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + ab * (d1 / (d1 - d3))[..., None]),
+            ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + ac * (d2 / (d2 - d6))[..., None]),
+            ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+             b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[..., None]),
+        ]
+    for condition, point in reversed(regions):
+        closest = np.where(condition[..., None], point, closest)
+    return np.min(np.linalg.norm(p - closest, axis=2), axis=1)
+
+
+def _query_points(mesh: trimesh.Trimesh, rng: np.random.Generator) -> np.ndarray:
+    """Points within 0.02-0.5 mm of the vertices and edge midpoints (both sides of the sharp features) and spread over
+    the bounding box."""
+    edges = mesh.vertices[mesh.edges_unique]
+    features = np.concatenate([mesh.vertices, edges.mean(axis=1)])
+    features = features[rng.integers(len(features), size=300)]
+    offsets = rng.standard_normal(features.shape)
+    offsets *= (rng.uniform(0.02, 0.5, len(features)) / np.linalg.norm(offsets, axis=1))[:, None]
+    lo, hi = mesh.bounds
+    return np.concatenate([features + offsets, rng.uniform(lo - 0.5, hi + 0.5, (300, 3))])
+
+
+@pytest.mark.parametrize("name", ["cube_edge_6", "cone_r4_h6", "flat_punch_r3"])
+def test_penetration_matches_the_exact_inside_test_and_distance(name: str):
+    mesh = trimesh.load(INDENTERS / f"{name}.stl")
+    indenter = RigidIndenter.from_trimesh(name, mesh)
+    V, T = box_tet_mesh(np.linspace(0, 1, 2), np.linspace(0, 1, 2), np.linspace(0, 1, 2))
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [indenter])
+    ind = solver._indenter_struct([np.eye(4)], [np.eye(4)])
+    points = _query_points(mesh, np.random.default_rng(5))
+    depth = wp.zeros(len(points), dtype=wp.float64)
+    wp.launch(_penetrations, dim=len(points), inputs=[ind, wp.array(points, dtype=wp.vec3d), depth])
+    g = depth.numpy()
+    triangles = mesh.vertices[mesh.faces]
+    inside = np.abs(_winding_numbers(points, triangles)) > 0.5
+    distance = _closest_distances(points, triangles)
+    clear = distance > 1e-4  # not on the surface, where either answer is right
+    assert clear.sum() > 500 and inside[clear].sum() > 100 and (~inside[clear]).sum() > 100
+    assert np.all(g[clear & ~inside] == 0.0)
+    np.testing.assert_allclose(g[clear & inside], distance[clear & inside], rtol=0, atol=1e-5)
