@@ -20,7 +20,8 @@ tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate
 last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tight CG tolerance, relative
 residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--float64-cg-matrix``
 (the device CG's product on the float64 matrix, as before it read a float32 copy), ``--fresh-cg-graphs`` (each device
-CG solve captures its own graph with its own work arrays, as before they were kept, physics/definite_cg.py), ``--warp-cg``
+CG solve makes its own work vectors, state and graph, as before commit 31c75b7; x, the block-Jacobi inverses and the
+float32 blocks stay kept, physics/linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run

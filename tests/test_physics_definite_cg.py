@@ -94,21 +94,33 @@ def test_kept_workspace_solves_as_a_fresh_one(device: str):
     workspace, x = CgWorkspace(N, device), wp.zeros(N, dtype=wp.vec3d, device=device)
     rng = np.random.default_rng(4)
 
-    def solve(b, rtol, maxiter, kept: bool):
+    def solve(b, rtol, maxiter, kept: bool, start=None):
         op = block_row_operator(H, single_precision=True, rounded=rounded)
         M = BlockJacobi(H, inverse=inverse)
         out = x if kept else wp.zeros(N, dtype=wp.vec3d, device=device)
-        out.zero_()
+        out.assign(np.zeros((N, 3)) if start is None else start)
         result = definite_cg(op, wp.array(b, dtype=wp.vec3d, device=device), out, rtol, maxiter, M,
                              workspace=workspace if kept else None)
         return result, out.numpy()
 
-    for b, rtol, maxiter in [(rng.standard_normal((N, 3)), 1e-10, 3 * N), (rng.standard_normal((N, 3)), 1e-6, 7),
-                             (rng.standard_normal((N, 3)), 1e-8, 3 * N)]:
-        kept, x_kept = solve(b, rtol, maxiter, kept=True)
-        fresh, x_fresh = solve(b, rtol, maxiter, kept=False)
-        assert kept == fresh and (maxiter > 7 or kept.iterations == 7), (kept, fresh)
-        np.testing.assert_allclose(x_kept, x_fresh, rtol=1e-12, atol=1e-12 * np.abs(x_fresh).max())
+    exact = spla.spsolve(A.tocsc(), np.ones(3 * N)).reshape(N, 3)
+    cases = [  # b, rtol, maxiter, start
+        (rng.standard_normal((N, 3)), 1e-10, 3 * N, None),
+        (rng.standard_normal((N, 3)), 1e-6, 7, None),  # stopped by its cap
+        (1e3 * rng.standard_normal((N, 3)), 1e-2, 3 * N, None),  # a loose solve of a large b ...
+        (1e-3 * rng.standard_normal((N, 3)), 1e-8, 3 * N, None),  # ... then a small b: no tolerance carried over
+        (np.ones((N, 3)), 1e-6, 3 * N, exact),  # converged at its start: returns before any iteration ...
+        (1e-4 * rng.standard_normal((N, 3)), 1e-6, 3 * N, None),  # ... and leaves nothing in the state
+    ]
+    tol = 1e-12 if device == "cpu" else 1e-9  # on CUDA the dot products' atomics change the last bits
+    for b, rtol, maxiter, start in cases:
+        kept, x_kept = solve(b, rtol, maxiter, kept=True, start=start)
+        fresh, x_fresh = solve(b, rtol, maxiter, kept=False, start=start)
+        assert kept.converged == fresh.converged and abs(kept.iterations - fresh.iterations) <= (device != "cpu"), \
+            (kept, fresh)
+        assert kept.iterations > 0 or start is not None, kept
+        assert (maxiter > 7 or kept.iterations == 7) and (start is None or kept.iterations == 0), kept
+        np.testing.assert_allclose(x_kept, x_fresh, rtol=tol, atol=tol * np.abs(x_fresh).max())
     H.values.assign(2.0 * H.values.numpy())  # the same arrays, another matrix: the solution halves
     b = rng.standard_normal((N, 3))
     before = spla.spsolve(A.tocsc(), b.reshape(-1))

@@ -3,8 +3,8 @@
 Rigid indenter i: a watertight mesh in its local frame and a pose T_i (4x4, local -> gel frame, mm).
 At a boundary point of the gel with current position x = X + u(X):
 
-- Normal contact. Let q = T_i^-1 x. If q is inside the mesh (the sign of its closest point's angle-weighted pseudo
-  normal: exact for a watertight mesh without self-intersections; indenters/loading.py refuses open ones), the penetration is
+- Normal contact. Let q = T_i^-1 x. If q is inside the mesh (the side of the closest face's plane, or at an edge or a
+  vertex the winding number; ``penetration``), the penetration is
   g = |c - q| with c the closest surface point, and n = T_i (c - q)/g (the direction that takes x out of
   the indenter). Inside a face, g and n are the (float64) distance to the face plane and its normal,
   which stays accurate for tiny penetrations where the float32 closest point would not. Energy k/2 g^2 per unit area, so the gel feels the traction
@@ -73,16 +73,24 @@ def _point(mesh: wp.uint64, face: int, k: int):
 
 
 @wp.func
+def _inside_face(hit: wp.MeshQueryPoint, tol: wp.float32):
+    """Whether the closest point of ``hit`` lies inside its face, away from the face's edges by ``tol`` (barycentric)."""
+    return hit.u > tol and hit.v > tol and wp.float32(1.0) - hit.u - hit.v > tol
+
+
+@wp.func
 def penetration(ind: Indenters, i: int, x: wp.vec3d):
     """(g, n): penetration depth (mm, 0 if outside) and push-out direction in the gel frame.
 
     Inside a face (the usual case) g is the distance to the face plane along its outward normal,
     computed in float64; near an edge or a vertex of the indenter n points to the closest point. A point outside
-    the mesh's bounding box is outside the mesh: (0, +z) without a mesh query. Inside or outside is the sign of the
-    closest point's angle-weighted pseudo normal (``mesh_query_point_sign_normal``), not the winding number: the
-    same answers on the library's sharp indenters (tests/test_physics_contact_query.py) and the contact kernels
-    5.2x faster on an H100 (955 -> 185 us on press_slide, BENCHMARKS.md ``fem_contact_query_gpu``), since the
-    winding number looks at the whole mesh for every point."""
+    the mesh's bounding box is outside the mesh: (0, +z) without a mesh query. Inside or outside: where the closest
+    point lies inside a face, the side of that face's plane (exact for a closed mesh); at an edge or a vertex, the
+    winding number (which looks at the whole mesh, so it is the expensive query: the contact kernels take 545 instead
+    of 940 us on press_slide on an H100, BENCHMARKS.md ``fem_contact_query_gpu``). Warp's pseudo-normal sign alone
+    (``mesh_query_point_sign_normal``) was tried and put points up to 2 mm deep in the coin and the pocket block
+    outside: it adds the normals of every face within a tolerance of the closest distance
+    (tests/test_physics_contact_query.py)."""
     q = _transform(ind.pose_inv[i], x)
     g = _f(0.0)
     n = wp.vec3d(_f(0.0), _f(0.0), _f(1.0))
@@ -91,24 +99,35 @@ def penetration(ind: Indenters, i: int, x: wp.vec3d):
     if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
         return g, n
     qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
-    hit = wp.mesh_query_point_sign_normal(ind.mesh[i], qf, wp.float32(ind.max_dist[i]), wp.float32(1.0e-3))
-    if hit.result:
-        if hit.sign < 0.0:
-            p0 = _point(ind.mesh[i], hit.face, 0)
-            nf = wp.normalize(wp.cross(_point(ind.mesh[i], hit.face, 1) - p0, _point(ind.mesh[i], hit.face, 2) - p0))
-            edge_tol = wp.float32(1.0e-4)
-            if hit.u > edge_tol and hit.v > edge_tol and wp.float32(1.0) - hit.u - hit.v > edge_tol:
-                g = wp.dot(p0 - q, nf)
-                n = _rotate(ind.pose[i], nf)
+    edge_tol = wp.float32(1.0e-4)
+    hit = wp.mesh_query_point_no_sign(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
+    if not hit.result:
+        return g, n
+    p0 = _point(ind.mesh[i], hit.face, 0)
+    nf = wp.normalize(wp.cross(_point(ind.mesh[i], hit.face, 1) - p0, _point(ind.mesh[i], hit.face, 2) - p0))
+    if _inside_face(hit, edge_tol):
+        g = wp.dot(p0 - q, nf)
+        if g > _f(0.0):
+            n = _rotate(ind.pose[i], nf)
+        else:
+            g = _f(0.0)
+        return g, n
+    hit = wp.mesh_query_point_sign_winding_number(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
+    if hit.result and hit.sign < 0.0:
+        p0 = _point(ind.mesh[i], hit.face, 0)
+        nf = wp.normalize(wp.cross(_point(ind.mesh[i], hit.face, 1) - p0, _point(ind.mesh[i], hit.face, 2) - p0))
+        if _inside_face(hit, edge_tol):
+            g = wp.dot(p0 - q, nf)
+            n = _rotate(ind.pose[i], nf)
+        else:
+            cf = wp.mesh_eval_position(ind.mesh[i], hit.face, hit.u, hit.v)
+            d = wp.vec3d(_f(cf[0]), _f(cf[1]), _f(cf[2])) - q
+            g = wp.length(d)
+            if g > _f(1.0e-9):
+                n = _rotate(ind.pose[i], d / g)
             else:
-                cf = wp.mesh_eval_position(ind.mesh[i], hit.face, hit.u, hit.v)
-                d = wp.vec3d(_f(cf[0]), _f(cf[1]), _f(cf[2])) - q
-                g = wp.length(d)
-                if g > _f(1.0e-9):
-                    n = _rotate(ind.pose[i], d / g)
-                else:
-                    n = _rotate(ind.pose[i], nf)
-            g = wp.max(g, _f(0.0))
+                n = _rotate(ind.pose[i], nf)
+        g = wp.max(g, _f(0.0))
     return g, n
 
 

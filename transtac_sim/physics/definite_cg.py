@@ -26,7 +26,8 @@ added atomically (round-off varies from run to run in the last bits, as the asse
 A ``CgWorkspace`` keeps the work vectors, the state and the captured graphs between solves of one size (a solver's
 Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``, the preconditioner
 and x) launches that solve's graph instead of capturing and instantiating its own (press_slide on an H100: one graph
-for all its frames, 0.85-0.95x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``).
+for all its frames, 0.87x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``). The state is cleared
+at the start of every solve.
 """
 
 from __future__ import annotations
@@ -192,8 +193,11 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     ``workspace``: work arrays and graphs kept from earlier solves of the same size (a new one otherwise); a graph is
     reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same."""
     device = b.device
-    ws = workspace if workspace is not None and len(workspace.r) == len(b) else CgWorkspace(len(b), device)
+    if workspace is not None and not len(workspace.r) == len(b) == len(x):
+        raise ValueError(f"CG workspace of {len(workspace.r)} 3-vectors for b of {len(b)} and x of {len(x)}")
+    ws = workspace if workspace is not None else CgWorkspace(len(b), device)
     r, z, p, q, state, condition = ws.r, ws.z, ws.p, ws.q, ws.state, ws.condition
+    state.zero_()  # the sums below add into it; a kept state holds the last solve's
     inverse = M.inverse_blocks if M is not None else ws.no_preconditioner
 
     def tiled(kernel, *inputs):

@@ -49,5 +49,6 @@ class RigidIndenter:
             self._meshes[key] = wp.Mesh(
                 points=wp.array(self.vertices_mm.astype(np.float32), dtype=wp.vec3, device=device),
                 indices=wp.array(self.faces.reshape(-1), dtype=wp.int32, device=device),
+                support_winding_number=True,
             )
         return self._meshes[key]

@@ -28,8 +28,8 @@
   that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
   10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
   within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
-  ``fem_device_last_resort_gpu``). The last converged system's matrix and
-  preconditioner are kept for ``solve_last``. Block-Jacobi because it is the cheapest per solve here: Warp's
+  ``fem_device_last_resort_gpu``). The last converged system's float32 matrix and
+  preconditioner are kept for ``solve_last`` (in ``DeviceWork``, with the CG's arrays and graph). Block-Jacobi because it is the cheapest per solve here: Warp's
   FSAI halves CG's iterations but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) costs more than
   it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
 """

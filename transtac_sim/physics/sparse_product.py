@@ -14,9 +14,11 @@ fewer threads.
 
 With ``single_precision`` the product reads a copy of the blocks rounded to float32 (40 instead of 80 MB per product
 on press_slide) and does its arithmetic in float64: the device CG's matrix (linear.py). The rounding perturbs each
-entry by at most 2^-24 of itself, far below the CG's relative tolerances (1e-2 to 1e-4): it changes Newton's step,
-not its solution, which the float64 gradient decides. The deviatoric term's product (energies and gradients,
-assembly.py) stays float64.
+entry by at most 2^-24 of itself, and CG then solves the rounded system: its float64 residual can exceed the tolerance
+by about the condition number times 2^-24 (a condition number of 1e7 makes a 1e-4 solve one of about 1e-3). That
+changes Newton's step, not its solution, which the float64 gradient decides; on press_slide the frames' markers
+agree with the float64 matrix's within the spread of two float64 runs (BENCHMARKS.md ``fem_cg_float32_gpu``). The
+deviatoric term's product (energies and gradients, assembly.py) stays float64.
 """
 
 from __future__ import annotations
@@ -82,7 +84,8 @@ def _round_to_float32(blocks: wp.array(dtype=wp.mat33d), rounded: wp.array(dtype
     rounded[k] = wp.mat33f(blocks[k])
 
 
-def block_row_operator(A: BsrMatrix, single_precision: bool = False, rounded: wp.array | None = None) -> LinearOperator:
+def block_row_operator(A: BsrMatrix, single_precision: bool = False,
+                       rounded: wp.array | None = None) -> LinearOperator:
     """``A`` (3x3 float64 blocks) as a ``warp.optim.linear`` operator whose product is ``_block_row_product``;
     graph-capturable (one launch, no allocation). ``single_precision``: the product reads A's blocks rounded to float32,
     copied here into ``rounded`` where it is given and large enough (later changes to A are not seen). The operator's
@@ -91,8 +94,9 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False, rounded: wp
         raise ValueError(f"expected 3x3 float64 blocks, got {A.block_shape} {A.scalar_type}")
     blocks = A.values
     if single_precision:
-        blocks = rounded if rounded is not None and len(rounded) >= len(A.values) else \
-            wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
+        if rounded is not None and len(rounded) < len(A.values):
+            raise ValueError(f"float32 buffer of {len(rounded)} blocks for a matrix of {len(A.values)}")
+        blocks = rounded if rounded is not None else wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
         wp.launch(_round_to_float32, dim=len(A.values), device=A.device, inputs=[A.values, blocks])
 
     def matvec(x, y, z, alpha, beta):
