@@ -73,6 +73,13 @@ def _point(mesh: wp.uint64, face: int, k: int):
 
 
 @wp.func
+def _face_plane(mesh: wp.uint64, face: int):
+    """(a vertex, the unit outward normal) of a mesh face, in float64."""
+    p0 = _point(mesh, face, 0)
+    return p0, wp.normalize(wp.cross(_point(mesh, face, 1) - p0, _point(mesh, face, 2) - p0))
+
+
+@wp.func
 def _inside_face(hit: wp.MeshQueryPoint, tol: wp.float32):
     """Whether the closest point of ``hit`` lies inside its face, away from the face's edges by ``tol`` (barycentric)."""
     return hit.u > tol and hit.v > tol and wp.float32(1.0) - hit.u - hit.v > tol
@@ -88,9 +95,8 @@ def penetration(ind: Indenters, i: int, x: wp.vec3d):
     point lies inside a face, the side of that face's plane (exact for a closed mesh); at an edge or a vertex, the
     winding number (which looks at the whole mesh, so it is the expensive query: the contact kernels take 545 instead
     of 940 us on press_slide on an H100, BENCHMARKS.md ``fem_contact_query_gpu``). Warp's pseudo-normal sign alone
-    (``mesh_query_point_sign_normal``) was tried and put points up to 2 mm deep in the coin and the pocket block
-    outside: it adds the normals of every face within a tolerance of the closest distance
-    (tests/test_physics_contact_query.py)."""
+    (``mesh_query_point_sign_normal``) was tried and, in a review's denser sampling, put a few points deep inside the
+    coin and the pocket block outside: it adds the normals of every face within a tolerance of the closest distance."""
     q = _transform(ind.pose_inv[i], x)
     g = _f(0.0)
     n = wp.vec3d(_f(0.0), _f(0.0), _f(1.0))
@@ -103,8 +109,7 @@ def penetration(ind: Indenters, i: int, x: wp.vec3d):
     hit = wp.mesh_query_point_no_sign(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
     if not hit.result:
         return g, n
-    p0 = _point(ind.mesh[i], hit.face, 0)
-    nf = wp.normalize(wp.cross(_point(ind.mesh[i], hit.face, 1) - p0, _point(ind.mesh[i], hit.face, 2) - p0))
+    p0, nf = _face_plane(ind.mesh[i], hit.face)
     if _inside_face(hit, edge_tol):
         g = wp.dot(p0 - q, nf)
         if g > _f(0.0):
@@ -114,8 +119,7 @@ def penetration(ind: Indenters, i: int, x: wp.vec3d):
         return g, n
     hit = wp.mesh_query_point_sign_winding_number(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
     if hit.result and hit.sign < 0.0:
-        p0 = _point(ind.mesh[i], hit.face, 0)
-        nf = wp.normalize(wp.cross(_point(ind.mesh[i], hit.face, 1) - p0, _point(ind.mesh[i], hit.face, 2) - p0))
+        p0, nf = _face_plane(ind.mesh[i], hit.face)
         if _inside_face(hit, edge_tol):
             g = wp.dot(p0 - q, nf)
             n = _rotate(ind.pose[i], nf)

@@ -23,7 +23,7 @@ entry), the update of p, and the stop test. The state (r . z, p . q, |r|^2, tole
 iteration cap) is one small float64 array, so the kernels of a stopped solve do nothing. Dot products are block-wise tile sums
 added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
-A ``CgWorkspace`` keeps the work vectors, the state and the captured graphs between solves of one size (a solver's
+A ``CgWorkspace`` keeps the work vectors, the state and the last captured graph between solves of one size (a solver's
 Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``, the preconditioner
 and x) launches that solve's graph instead of capturing and instantiating its own (press_slide on an H100: one graph
 for all its frames, 0.87x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``). The state is cleared
@@ -169,20 +169,17 @@ def _decide(state: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int3
     condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
 
 
-#: graphs a workspace keeps (the oldest is dropped): a solver's matrices change arrays only when their sparsity does
-KEPT_GRAPHS = 4
-
-
 class CgWorkspace:
-    """``definite_cg``'s work vectors (r, z, p, q), state and captured CUDA graphs, kept between solves of ``n``
-    3-vectors on ``device``."""
+    """``definite_cg``'s work vectors (r, z, p, q), state and last captured CUDA graph, kept between solves of ``n``
+    3-vectors on ``device`` (a solver's matrices change arrays only when their sparsity does)."""
 
     def __init__(self, n: int, device):
         self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(4))
         self.state = wp.zeros(9, dtype=wp.float64, device=device)
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
-        self.graphs: dict = {}  # (operator's graph_key, preconditioner, x) -> captured graph
+        self.graph_key: tuple | None = None  # (operator's graph_key, preconditioner, x) of ``graph``
+        self.graph = None
         self.captures = 0  # graphs captured (the rest of the solves on CUDA launched a kept one)
 
 
@@ -190,7 +187,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
                 M: BlockJacobi | None = None, atol: float = 0.0, workspace: CgWorkspace | None = None) -> CgResult:
     """Solves A x = b from the given x (vec3d arrays, updated in place) to |b - A x| <= max(rtol |b|, atol),
     stopping early where A (or M) is found not to be positive definite (x then holds the last iterate).
-    ``workspace``: work arrays and graphs kept from earlier solves of the same size (a new one otherwise); a graph is
+    ``workspace``: work arrays and the graph kept from earlier solves of the same size (a new one otherwise); the graph is
     reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same."""
     device = b.device
     if workspace is not None and not len(workspace.r) == len(b) == len(x):
@@ -229,7 +226,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         conditional = wp.is_conditional_graph_supported()
         key = getattr(A, "graph_key", None)
         key = key and (key, inverse.ptr, x.ptr)
-        graph = ws.graphs.get(key) if key else None
+        graph = ws.graph if key and key == ws.graph_key else None
         if graph is None:
             iteration()  # outside any capture: loads the kernels' modules
             with wp.ScopedCapture(device=device, force_module_load=False) as capture:
@@ -240,9 +237,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             graph = capture.graph
             ws.captures += 1
             if key:
-                if len(ws.graphs) >= KEPT_GRAPHS:
-                    del ws.graphs[next(iter(ws.graphs))]
-                ws.graphs[key] = graph
+                ws.graph_key, ws.graph = key, graph
         if conditional:
             wp.capture_launch(graph)
         else:

@@ -14,9 +14,8 @@ fewer threads.
 
 With ``single_precision`` the product reads a copy of the blocks rounded to float32 (40 instead of 80 MB per product
 on press_slide) and does its arithmetic in float64: the device CG's matrix (linear.py). The rounding perturbs each
-entry by at most 2^-24 of itself, and CG then solves the rounded system: its float64 residual can exceed the tolerance
-by about the condition number times 2^-24 (a condition number of 1e7 makes a 1e-4 solve one of about 1e-3). That
-changes Newton's step, not its solution, which the float64 gradient decides; on press_slide the frames' markers
+entry by at most 2^-24 of itself, and CG then solves the rounded system: its float64 relative residual can exceed
+the tolerance by up to about the condition number times 2^-24. That changes Newton's step, not its solution, which the float64 gradient decides; on press_slide the frames' markers
 agree with the float64 matrix's within the spread of two float64 runs (BENCHMARKS.md ``fem_cg_float32_gpu``). The
 deviatoric term's product (energies and gradients, assembly.py) stays float64.
 """
@@ -105,5 +104,6 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False,
                                 wp.float64(beta), z])
 
     operator = LinearOperator(A.shape, A.scalar_type, A.device, matvec)
-    operator.graph_key = (A.nrow, A.offsets.ptr, A.row_counts.ptr if A.row_counts is not None else None, A.columns.ptr, blocks.ptr)
+    row_counts = A.row_counts.ptr if A.row_counts is not None else None
+    operator.graph_key = (A.nrow, A.offsets.ptr, row_counts, A.columns.ptr, blocks.ptr)
     return operator
