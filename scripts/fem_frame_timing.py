@@ -27,6 +27,7 @@ import statistics
 import time
 from pathlib import Path
 
+import solver_variants
 import typer
 
 from transtac_sim.config import load_scene
@@ -149,7 +150,11 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          max_newton_iterations: int | None = typer.Option(None, min=1, help="replace SolverSettings' "
                                                           "max_newton_iterations (per sub-step)"),
          friction_lag_moves: int | None = typer.Option(None, min=1, help="replace the scene's [physics] "
-                                                       "friction_lag_moves (per step)")) -> None:
+                                                       "friction_lag_moves (per step)"),
+         second_hessian: str = solver_variants.SECOND_HESSIAN_OPTION,
+         warm_start: str = solver_variants.WARM_START_OPTION,
+         exact_shifts: str = solver_variants.EXACT_SHIFTS_OPTION) -> None:
+    solver_variants.apply(second_hessian, exact_shifts, warm_start)
     if max_newton_iterations is not None:
         import functools
 

@@ -30,8 +30,9 @@ import typer
 
 from transtac_sim.config import load_scene
 from transtac_sim.physics import QuasiStaticSolver, linear
+from transtac_sim.physics.elasticity import CLAMPED, EXACT, PROJECTED
 
-HESSIANS = {(1.0, False): "exact", (1.0, True): "clamped", (0.0, True): "Gauss-Newton"}
+HESSIANS = {(1.0, EXACT): "exact", (1.0, CLAMPED): "clamped", (1.0, PROJECTED): "projected", (0.0, CLAMPED): "Gauss-Newton"}
 
 
 def _trace_newton() -> None:
@@ -46,6 +47,8 @@ def _trace_newton() -> None:
 
     def logged_solve(self, H, rhs, definite=False, **kwargs):
         du = solve(self, H, rhs, definite, **kwargs)
+        if kwargs.get("shift"):
+            last["which"] = f"{last.get('which')} + {kwargs['shift']:g} |diag|"
         outcome = "not positive definite" if du is None else (f"shifted {self.last_shift:g}" if self.last_shift
                                                                  else "step")
         step = f", max |du| {float(np.max(np.abs(du.numpy()))):.2e} mm" if du is not None else ""

@@ -61,6 +61,8 @@ import warp as wp
 import warp.fem as fem
 from scipy.spatial.transform import Rotation
 
+from transtac_sim.physics.elasticity import CLAMPED, EXACT
+
 #: Inexact Newton (Eisenstat & Walker 1996): the CG (device; on the host, preconditioned with the kept factorisation,
 #: linear.py) solves each Newton system to a relative residual
 #: of min(FORCING_MAX, |g| / |g_first|), |g_first| the gradient at the (sub)step's first pass: loose while
@@ -79,6 +81,22 @@ FORCING_MAX = 0.01
 #: (scripts/trace_sequence.py --newton; BENCHMARKS.md ``fem_newton_stall_gpu``).
 STALL_STEPS = 10
 STALL_ALPHA = 1.0 / 16.0
+
+#: friction's lag is moved once Newton's estimated remaining step is below this fraction of |u - u_lag| (``_move_lag``):
+#: moved earlier (0.3, 1.0) the press_slide frames took more Newton iterations and their markers left the lag-converged
+#: solution by up to 0.45 mm (BENCHMARKS.md ``fem_slide_iterations_gpu``)
+LAG_MOVE_RATIO = 0.1
+
+#: the exact Hessian plus these multiples of |diag H| (Levenberg-Marquardt, linear.py ``solve(shift=...)``), tried in turn
+#: before the second Hessian where the exact one is not positive definite; none by default (BENCHMARKS.md
+#: ``fem_slide_iterations_gpu``: (0.01, 0.1) took 172-173 instead of 174-175 Newton iterations on press_slide)
+EXACT_SHIFTS: tuple[float, ...] = ()
+
+#: Newton's second Hessian, where the exact one is not positive definite (``_hessian_ladder``): the volumetric pressure
+#: clamped (elasticity.CLAMPED) or the volumetric energy density's Hessian projected tet by tet (elasticity.PROJECTED):
+#: on press_slide 165-166 against 176 Newton iterations, on train_random's sharp sequences 0, 4, 9 1.1-2.4x the physics
+#: time (BENCHMARKS.md ``fem_slide_iterations_gpu``), so the clamp stays
+SECOND_HESSIAN = CLAMPED
 
 
 class NewtonSteps:
@@ -141,10 +159,10 @@ class NewtonSteps:
             rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
             rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)
             ladder = self._hessian_ladder()
-            for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
+            for rung, (geometric, clamp, shift) in enumerate(ladder):  # all but the last must be positive definite
                 # near convergence (the step below 100 tol) the step's length decides the convergence test
                 du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
-                                        rtol=rtol, exact_below=100.0 * tol, guess=estimate)
+                                        rtol=rtol, exact_below=100.0 * tol, guess=estimate, shift=shift)
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
@@ -200,15 +218,16 @@ class NewtonSteps:
         cap = self.settings.max_newton_iterations
         return cap if cap is not None else (40 if self._linear.method == "direct" else 120)
 
-    def _hessian_ladder(self) -> tuple[tuple[float, bool], ...]:
-        """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one, the clamped one, then
-        Gauss-Newton (elasticity.py). A Hessian other than the last is passed over where the linear solver finds it
+    def _hessian_ladder(self) -> tuple[tuple[float, int, float], ...]:
+        """(geometric, clamp, shift) of the Hessians tried in turn for a Newton step: the exact one (then, with
+        ``EXACT_SHIFTS``, shifted), ``SECOND_HESSIAN`` (the clamped one), then Gauss-Newton (elasticity.py). A Hessian other than the last is passed over where the linear solver finds it
         is not positive definite: CHOLMOD on the host, the device CG at its first direction of non-positive
         curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive definite on
         train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform compression
         with the barrier acting it is, tests/test_physics_barrier.py). The last is solved whatever it is: on the host
         by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (linear.py)."""
-        return ((1.0, False), (1.0, True), (0.0, True))
+        exact = tuple((1.0, EXACT, shift) for shift in (0.0, *EXACT_SHIFTS))
+        return (*exact, (1.0, SECOND_HESSIAN, 0.0), (0.0, CLAMPED, 0.0))
 
     def _move_lag(self, ind, remaining: float) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
@@ -217,7 +236,7 @@ class NewtonSteps:
         only as far as the next one makes worth it, instead of to the tolerance)."""
         change = float(np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy())))
         tol = self.settings.newton_tol_mm
-        if change < 10.0 * tol or remaining >= max(tol, 0.1 * change):
+        if change < 10.0 * tol or remaining >= max(tol, LAG_MOVE_RATIO * change):
             return False
         wp.copy(self.u_lag.dof_values, self.u.dof_values)
         self._update_lag(ind)
