@@ -151,10 +151,11 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
                                                           "max_newton_iterations (per sub-step)"),
          friction_lag_moves: int | None = typer.Option(None, min=1, help="replace the scene's [physics] "
                                                        "friction_lag_moves (per step)"),
-         second_hessian: str = solver_variants.SECOND_HESSIAN_OPTION,
          warm_start: str = solver_variants.WARM_START_OPTION,
+         exact_below: float = solver_variants.EXACT_BELOW_OPTION,
+         lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION,
          exact_shifts: str = solver_variants.EXACT_SHIFTS_OPTION) -> None:
-    solver_variants.apply(second_hessian, exact_shifts, warm_start)
+    solver_variants.apply(exact_shifts, warm_start, exact_below, lag_move_ratio)
     if max_newton_iterations is not None:
         import functools
 

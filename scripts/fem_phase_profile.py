@@ -120,10 +120,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          frames: int = typer.Option(2, min=1), skip_first: bool = typer.Option(False),
          forcing_max: float = typer.Option(newton.FORCING_MAX, min=0.0, max=1.0),
          clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
-         second_hessian: str = solver_variants.SECOND_HESSIAN_OPTION,
          warm_start: str = solver_variants.WARM_START_OPTION,
+         exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          exact_shifts: str = solver_variants.EXACT_SHIFTS_OPTION,
-         lag_move_ratio: float = typer.Option(newton.LAG_MOVE_RATIO, min=0.0, help="newton.LAG_MOVE_RATIO"),
+         lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION,
          friction_lag_moves: int | None = typer.Option(None, min=1, help="replace the scene's [physics] "
                                                        "friction_lag_moves (per step)"),
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
@@ -137,10 +137,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
-    solver_variants.apply(second_hessian, exact_shifts, warm_start)
-    newton.LAG_MOVE_RATIO = lag_move_ratio
+    solver_variants.apply(exact_shifts, warm_start, exact_below, lag_move_ratio)
     if clamped_only:
-        QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, newton.SECOND_HESSIAN, 0.0), (0.0, CLAMPED, 0.0))
+        QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED, 0.0), (0.0, CLAMPED, 0.0))
     if no_estimate:
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
     if warp_spmv:
@@ -205,8 +204,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
-          f"forcing max {forcing_max:g}, second Hessian {second_hessian}, lag move ratio {lag_move_ratio:g}, "
-          f"friction lag moves {physics.friction_lag_moves}, exact shifts {newton.EXACT_SHIFTS}{', no exact Hessian' if clamped_only else ''}"
+          f"forcing max {forcing_max:g}, lag move ratio {lag_move_ratio:g}, "
+          f"friction lag moves {physics.friction_lag_moves}, exact shifts {newton.EXACT_SHIFTS}, exact below "
+          f"{newton.EXACT_BELOW:g} tol{', no exact Hessian' if clamped_only else ''}"
           f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
           f"({1000 * total / max(iterations, 1):.1f} ms per iteration)")

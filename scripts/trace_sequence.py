@@ -30,9 +30,9 @@ import typer
 
 from transtac_sim.config import load_scene
 from transtac_sim.physics import QuasiStaticSolver, linear
-from transtac_sim.physics.elasticity import CLAMPED, EXACT, PROJECTED
+from transtac_sim.physics.elasticity import CLAMPED, EXACT
 
-HESSIANS = {(1.0, EXACT): "exact", (1.0, CLAMPED): "clamped", (1.0, PROJECTED): "projected", (0.0, CLAMPED): "Gauss-Newton"}
+HESSIANS = {(1.0, EXACT): "exact", (1.0, CLAMPED): "clamped", (0.0, CLAMPED): "Gauss-Newton"}
 
 
 def _trace_newton() -> None:

@@ -50,36 +50,33 @@ import warp.fem as fem
 _f = wp.float64
 
 #: How a Hessian takes the volumetric term's geometric part (the ``clamp`` argument of the Hessian forms and of
-#: volumetric_hessian.py; newton.py ``_hessian_ladder``): as it is, with the pressure clamped, or with the volumetric
-#: energy density's Hessian projected tet by tet (volumetric_hessian.py ``projected_density_hessian``). The barrier's
-#: geometric part is clamped in both of the last two.
-EXACT = wp.constant(0)
-CLAMPED = wp.constant(1)
-PROJECTED = wp.constant(2)
+#: volumetric_hessian.py; newton.py ``_hessian_ladder``): as it is, or with the pressure clamped (and the barrier's too).
+EXACT = 0
+CLAMPED = 1
 
 
 @wp.func
-def column(F: wp.mat33d, j: int):
+def _col(F: wp.mat33d, j: int):
     return wp.vec3d(F[0, j], F[1, j], F[2, j])
 
 
 @wp.func
 def cofactor(F: wp.mat33d):
-    f0 = column(F, 0)
-    f1 = column(F, 1)
-    f2 = column(F, 2)
+    f0 = _col(F, 0)
+    f1 = _col(F, 1)
+    f2 = _col(F, 2)
     return wp.matrix_from_cols(wp.cross(f1, f2), wp.cross(f2, f0), wp.cross(f0, f1))
 
 
 @wp.func
 def cofactor_delta(F: wp.mat33d, A: wp.mat33d):
     """Directional derivative of cof(F) along A."""
-    f0 = column(F, 0)
-    f1 = column(F, 1)
-    f2 = column(F, 2)
-    a0 = column(A, 0)
-    a1 = column(A, 1)
-    a2 = column(A, 2)
+    f0 = _col(F, 0)
+    f1 = _col(F, 1)
+    f2 = _col(F, 2)
+    a0 = _col(A, 0)
+    a1 = _col(A, 1)
+    a2 = _col(A, 2)
     return wp.matrix_from_cols(
         wp.cross(a1, f2) + wp.cross(f1, a2),
         wp.cross(a2, f0) + wp.cross(f2, a0),

@@ -165,8 +165,8 @@ class LinearSolver:
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
         ``guess`` (nodes, 3): where the direct path's PCG starts (Newton's step estimate for the same right-hand
-        side; the device CG starts from 0). Without ``definite``, a system the device CG does not solve is shifted
-        (``_solve_shifted``)."""
+        side; the device CG starts from 0). ``shift`` > 0: H + shift |diag(H)| is solved instead (newton.EXACT_SHIFTS).
+        Without ``definite``, a system the device CG does not solve is shifted (``_solve_shifted``)."""
         self.forget()
         self.last_shift = 0.0
         if shift > 0.0:  # H + shift |diag(H)| (Levenberg-Marquardt; newton.EXACT_SHIFTS)

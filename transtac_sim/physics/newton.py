@@ -88,15 +88,15 @@ STALL_ALPHA = 1.0 / 16.0
 LAG_MOVE_RATIO = 0.1
 
 #: the exact Hessian plus these multiples of |diag H| (Levenberg-Marquardt, linear.py ``solve(shift=...)``), tried in turn
-#: before the second Hessian where the exact one is not positive definite; none by default (BENCHMARKS.md
-#: ``fem_slide_iterations_gpu``: (0.01, 0.1) took 172-173 instead of 174-175 Newton iterations on press_slide)
+#: before the clamped one where the exact one is not positive definite; none by default: with (0.01, 0.1) press_slide
+#: took 172-173 instead of 174-175 Newton iterations and train_random sequences 0-13 8 % more on an H100
+#: (BENCHMARKS.md ``fem_slide_iterations_gpu``)
 EXACT_SHIFTS: tuple[float, ...] = ()
 
-#: Newton's second Hessian, where the exact one is not positive definite (``_hessian_ladder``): the volumetric pressure
-#: clamped (elasticity.CLAMPED) or the volumetric energy density's Hessian projected tet by tet (elasticity.PROJECTED):
-#: on press_slide 165-166 against 176 Newton iterations, on train_random's sharp sequences 0, 4, 9 1.1-2.4x the physics
-#: time (BENCHMARKS.md ``fem_slide_iterations_gpu``), so the clamp stays
-SECOND_HESSIAN = CLAMPED
+#: a Newton system's CG goes on to the tight tolerance (linear.py ``cg_tol``) where its step is below this many
+#: newton_tol_mm: there the step's length decides the convergence test, and a loosely solved step is shorter (10 took 13 %
+#: more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
+EXACT_BELOW = 100.0
 
 
 class NewtonSteps:
@@ -162,7 +162,7 @@ class NewtonSteps:
             for rung, (geometric, clamp, shift) in enumerate(ladder):  # all but the last must be positive definite
                 # near convergence (the step below 100 tol) the step's length decides the convergence test
                 du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
-                                        rtol=rtol, exact_below=100.0 * tol, guess=estimate, shift=shift)
+                                        rtol=rtol, exact_below=EXACT_BELOW * tol, guess=estimate, shift=shift)
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
@@ -220,14 +220,14 @@ class NewtonSteps:
 
     def _hessian_ladder(self) -> tuple[tuple[float, int, float], ...]:
         """(geometric, clamp, shift) of the Hessians tried in turn for a Newton step: the exact one (then, with
-        ``EXACT_SHIFTS``, shifted), ``SECOND_HESSIAN`` (the clamped one), then Gauss-Newton (elasticity.py). A Hessian other than the last is passed over where the linear solver finds it
-        is not positive definite: CHOLMOD on the host, the device CG at its first direction of non-positive
+        ``EXACT_SHIFTS``, shifted), the clamped one, then Gauss-Newton (elasticity.py). A Hessian other than the last is
+        passed over where the linear solver finds it is not positive definite: CHOLMOD on the host, the device CG at its first direction of non-positive
         curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive definite on
         train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform compression
         with the barrier acting it is, tests/test_physics_barrier.py). The last is solved whatever it is: on the host
         by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (linear.py)."""
         exact = tuple((1.0, EXACT, shift) for shift in (0.0, *EXACT_SHIFTS))
-        return (*exact, (1.0, SECOND_HESSIAN, 0.0), (0.0, CLAMPED, 0.0))
+        return (*exact, (1.0, CLAMPED, 0.0), (0.0, CLAMPED, 0.0))
 
     def _move_lag(self, ind, remaining: float) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to

@@ -25,97 +25,16 @@ import numpy as np
 import warp as wp
 from warp.sparse import BsrMatrix
 
-from transtac_sim.physics.elasticity import (
-    CLAMPED,
-    PROJECTED,
-    cofactor,
-    cofactor_delta,
-    column,
-    pressure_bound,
-)
+from transtac_sim.physics.elasticity import cofactor, cofactor_delta, pressure_bound
 
 _f = wp.float64
-
-
-_vec9 = wp.types.vector(length=9, dtype=wp.float64)
-_mat99 = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
-
-
-@wp.func
-def _flat(M: wp.mat33d):
-    """vec(M), row by row: entry 3 i + k is M[i, k] (the layout of ``_mat99``'s rows and columns)."""
-    return _vec9(M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])
-
-
-@wp.func
-def _density_form(F: wp.mat33d, cof: wp.mat33d, lam: wp.float64, s: wp.float64, X: wp.mat33d, Y: wp.mat33d):
-    """X : (d^2 Psi / dF^2) : Y for Psi = lam/2 (J - alpha)^2 with s = lam (J - alpha) (times ``geometric``)."""
-    return lam * wp.ddot(cof, X) * wp.ddot(cof, Y) + s * wp.ddot(cofactor_delta(F, Y), X)
-
-
-@wp.func
-def _filtered(eigenvalue: wp.float64, floor: wp.float64):
-    """|eigenvalue + floor| - floor: unchanged where eigenvalue >= -floor, reflected about -floor below it."""
-    return wp.abs(eigenvalue + floor) - floor
-
-
-@wp.func
-def projected_density_hessian(F: wp.mat33d, lam: wp.float64, s: wp.float64, floor: wp.float64):
-    """sum_m (|l_m + floor| - floor) vec(M_m) vec(M_m)^T over the 9 eigenpairs (l_m, M_m) of d^2 Psi / dF^2 (9x9).
-
-    With F = U diag(sigma) V^T and u_i, v_i the columns of U, V, the eigenvectors are (Smith et al. 2019, "Analytic
-    eigensystems for isotropic distortion energies"): the twist and flip modes (u_i v_j^T +- u_j v_i^T) / sqrt 2 of each
-    pair i < j, whose eigenvalues are their Rayleigh quotients, and the three scaling modes sum_i q_i u_i v_i^T, q the
-    eigenvectors of the 3x3 block of the form on the u_i v_i^T (wp.eig3)."""
-    U = wp.mat33d()
-    sigma = wp.vec3d()
-    V = wp.mat33d()
-    wp.svd3(F, U, sigma, V)
-    cof = cofactor(F)
-    H = _mat99()
-    D0 = wp.outer(column(U, 0), column(V, 0))
-    D1 = wp.outer(column(U, 1), column(V, 1))
-    D2 = wp.outer(column(U, 2), column(V, 2))
-    A = wp.mat33d(
-        _density_form(F, cof, lam, s, D0, D0), _density_form(F, cof, lam, s, D0, D1), _density_form(F, cof, lam, s, D0, D2),
-        _density_form(F, cof, lam, s, D1, D0), _density_form(F, cof, lam, s, D1, D1), _density_form(F, cof, lam, s, D1, D2),
-        _density_form(F, cof, lam, s, D2, D0), _density_form(F, cof, lam, s, D2, D1), _density_form(F, cof, lam, s, D2, D2))
-    Q, d = wp.eig3(_f(0.5) * (A + wp.transpose(A)))
-    for k in range(3):
-        m = _flat(Q[0, k] * D0 + Q[1, k] * D1 + Q[2, k] * D2)
-        H += _filtered(d[k], floor) * wp.outer(m, m)
-    r = _f(0.5) * wp.sqrt(_f(2.0))
-    for i in range(3):
-        for j in range(i + 1, 3):
-            a = wp.outer(column(U, i), column(V, j))
-            b = wp.outer(column(U, j), column(V, i))
-            for sign in range(2):
-                M = r * (a + (_f(1.0) - _f(2.0) * _f(sign)) * b)
-                m = _flat(M)
-                H += _filtered(_density_form(F, cof, lam, s, M, M), floor) * wp.outer(m, m)
-    return H
-
-
-@wp.func
-def _contract(H: _mat99, ga: wp.vec3d, gb: wp.vec3d):
-    """The 3x3 block sum_kl H[3 i + k, 3 j + l] ga[k] gb[l]: d^2 Psi / dF^2 applied to du_a ga^T and du_b gb^T."""
-    block = wp.mat33d()
-    for i in range(3):
-        for j in range(3):
-            acc = _f(0.0)
-            for k in range(3):
-                for n in range(3):
-                    acc += H[3 * i + k, 3 * j + n] * ga[k] * gb[n]
-            block[i, j] = acc
-    return block
 
 
 @wp.kernel(enable_backward=False)
 def _tet_blocks(u: wp.array(dtype=wp.vec3d), nodes: wp.array2d(dtype=int), grads: wp.array2d(dtype=wp.vec3d),
                 volume: wp.array(dtype=wp.float64), params: wp.array(dtype=wp.vec2d), geometric: wp.float64,
-                filtering: int, barrier_tets: wp.array(dtype=wp.int32), blocks: wp.array(dtype=wp.mat33d)):
-    """blocks[(t K + a) K + b]: the volumetric Hessian block of tet t's coupled nodes a, b (K of them); ``filtering``
-    one of elasticity.py's EXACT, CLAMPED, PROJECTED."""
+                clamp: int, barrier_tets: wp.array(dtype=wp.int32), blocks: wp.array(dtype=wp.mat33d)):
+    """blocks[(t K + a) K + b]: the volumetric Hessian block of tet t's coupled nodes a, b (K of them)."""
     t = wp.tid()
     K = nodes.shape[1]
     F = wp.identity(n=3, dtype=wp.float64)
@@ -124,23 +43,14 @@ def _tet_blocks(u: wp.array(dtype=wp.vec3d), nodes: wp.array2d(dtype=int), grads
     mu = params[t][0]
     lam = params[t][1]
     p = lam * (wp.determinant(F) - _f(1.0) - mu / lam)
-    V = volume[t]
-    if filtering == PROJECTED:
-        floor = mu
-        if barrier_tets[t] != 0:
-            floor = _f(0.5) * mu
-        H = projected_density_hessian(F, lam, geometric * p, floor)
-        for a in range(K):
-            for b in range(K):
-                blocks[(t * K + a) * K + b] = V * _contract(H, grads[t, a], grads[t, b])
-        return
-    if filtering == CLAMPED:
+    if clamp != 0:
         bound = pressure_bound(F, mu)
         if barrier_tets[t] != 0:
             bound = _f(0.5) * bound
         p = wp.clamp(p, -bound, bound)
     s = geometric * p
     cof = cofactor(F)
+    V = volume[t]
     for a in range(K):
         ga = grads[t, a]
         ba = cof * ga
@@ -217,13 +127,12 @@ class VolumetricHessian:
             offsets=arr(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), int),
             sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(rows), dtype=wp.mat33d, device=device))
 
-    def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, filtering: int,
+    def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: bool,
                barrier_tets: wp.array) -> None:
-        """Adds the volumetric Hessian at displacement ``u`` (dof values, mm) to ``total``'s blocks, in place;
-        ``filtering``: elasticity.py's EXACT, CLAMPED or PROJECTED."""
+        """Adds the volumetric Hessian at displacement ``u`` (dof values, mm) to ``total``'s blocks, in place."""
         device = total.values.device
         wp.launch(_tet_blocks, dim=self.nodes.shape[0], device=device,
-                  inputs=[u, self.nodes, self.grads, self.volume, params, wp.float64(geometric), int(filtering),
+                  inputs=[u, self.nodes, self.grads, self.volume, params, wp.float64(geometric), int(clamp),
                           barrier_tets, self.blocks])
         wp.launch(_add_gathered, dim=len(self.targets), device=device,
                   inputs=[self.targets, self.offsets, self.sources, self.blocks, total.values])
