@@ -12,6 +12,9 @@ sub-steps, seconds.
 ``--sequence I`` solves sequence I of a randomised scene (its drawn indenter, depth, slide, friction and
 layout, as ``generate`` would): e.g. to see why a frame of ``scenes/train_random.toml`` failed.
 
+``--warm-start``, ``--exact-shifts``, ``--exact-below`` and ``--lag-move-ratio`` switch on the Newton variants of
+scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
+
 ``--label NAME --benchmarks`` stores the run under NAME in BENCHMARKS.md's ``fem_newton_iterations_cpu``
 section (the runs are kept in the section itself, so that "before" and "after" runs of different code
 versions sit in one table) and rewrites its table: median and per-frame iterations and seconds.

@@ -24,6 +24,8 @@ CG solve makes its own work vectors, state and graph, as before commit 31c75b7; 
 float32 blocks stay kept, physics/linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
+``--warm-start``, ``--exact-shifts``, ``--exact-below``, ``--lag-move-ratio`` and
+``--friction-lag-moves`` are the Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
 one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
 marker difference per frame).
