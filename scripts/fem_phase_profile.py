@@ -133,7 +133,6 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
          fresh_cg_graphs: bool = typer.Option(False, help="no workspace kept between device CG solves"),
          spmv_lanes: int | None = typer.Option(None, min=1, help="threads per block row of the CG's product"),
-         spmv_product: str | None = typer.Option(None, help="the CG's product: tile or atomic (sparse_product.PRODUCT)"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
@@ -157,10 +156,6 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
     if spmv_lanes is not None:
         sparse_product.LANES = spmv_lanes
-    if spmv_product is not None:
-        if spmv_product not in ("tile", "atomic"):
-            raise typer.BadParameter(f"--spmv-product must be tile or atomic, got {spmv_product!r}")
-        sparse_product.PRODUCT = spmv_product
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
     reference = np.load(compare_to) if compare_to else None

@@ -29,9 +29,6 @@ from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
 LANES = 32  # threads per block row: one warp
-#: "tile": one thread block of LANES threads per block row, its lanes' sums added by a tile reduction; "atomic": LANES
-#: threads per block row in thread blocks of 256, each adding its lanes' sum into z atomically after z = beta y
-PRODUCT = "tile"
 
 
 @wp.func
@@ -81,39 +78,6 @@ def _block_row_product(
 
 
 @wp.kernel(enable_backward=False)
-def _scaled(y: wp.array(dtype=wp.vec3d), beta: wp.float64, z: wp.array(dtype=wp.vec3d)):
-    """z = beta y (0 where beta is 0, whatever y holds)."""
-    i = wp.tid()
-    value = wp.vec3d()
-    if beta != wp.float64(0.0):
-        value = beta * y[i]
-    z[i] = value
-
-
-@wp.kernel(enable_backward=False)
-def _block_row_product_atomic(
-    offsets: wp.array(dtype=int),
-    row_counts: wp.array(dtype=int),
-    columns: wp.array(dtype=int),
-    blocks: wp.array(dtype=Any),
-    x: wp.array(dtype=wp.vec3d),
-    alpha: wp.float64,
-    lanes: int,
-    z: wp.array(dtype=wp.vec3d),
-):
-    """z[row] += alpha (the blocks lane, lane + lanes, ... of the row) x, one thread per (row, lane)."""
-    i = wp.tid()
-    row = i // lanes
-    lane = i - row * lanes
-    blocks_of_row = block_row_range(offsets, row_counts, row)
-    partial = wp.vec3d()
-    for k in range(blocks_of_row[0] + lane, blocks_of_row[1], lanes):
-        partial += wp.mat33d(blocks[k]) * x[columns[k]]
-    if blocks_of_row[0] + lane < blocks_of_row[1]:
-        wp.atomic_add(z, row, alpha * partial)
-
-
-@wp.kernel(enable_backward=False)
 def _round_to_float32(blocks: wp.array(dtype=wp.mat33d), rounded: wp.array(dtype=wp.mat33f)):
     k = wp.tid()
     rounded[k] = wp.mat33f(blocks[k])
@@ -135,11 +99,6 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False,
         wp.launch(_round_to_float32, dim=len(A.values), device=A.device, inputs=[A.values, blocks])
 
     def matvec(x, y, z, alpha, beta):
-        if PRODUCT == "atomic":
-            wp.launch(_scaled, dim=A.nrow, device=A.device, inputs=[y, wp.float64(beta), z])
-            wp.launch(_block_row_product_atomic, dim=A.nrow * LANES, device=A.device,
-                      inputs=[A.offsets, A.row_counts, A.columns, blocks, x, wp.float64(alpha), LANES, z])
-            return
         wp.launch_tiled(_block_row_product, dim=[A.nrow], block_dim=LANES, device=A.device,
                         inputs=[A.offsets, A.row_counts, A.columns, blocks, x, wp.float64(alpha), y,
                                 wp.float64(beta), z])
