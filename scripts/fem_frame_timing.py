@@ -12,7 +12,7 @@ sub-steps, seconds.
 ``--sequence I`` solves sequence I of a randomised scene (its drawn indenter, depth, slide, friction and
 layout, as ``generate`` would): e.g. to see why a frame of ``scenes/train_random.toml`` failed.
 
-``--warm-start``, ``--exact-shifts``, ``--exact-below`` and ``--lag-move-ratio`` switch on the Newton variants of
+``--warm-start``, ``--exact-below`` and ``--lag-move-ratio`` switch on the Newton variants of
 scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
 
 ``--label NAME --benchmarks`` stores the run under NAME in BENCHMARKS.md's ``fem_newton_iterations_cpu``
@@ -156,9 +156,8 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
                                                        "friction_lag_moves (per step)"),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
-         lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION,
-         exact_shifts: str = solver_variants.EXACT_SHIFTS_OPTION) -> None:
-    solver_variants.apply(exact_shifts, warm_start, exact_below, lag_move_ratio)
+         lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION) -> None:
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio)
     if max_newton_iterations is not None:
         import functools
 

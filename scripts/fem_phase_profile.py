@@ -24,8 +24,8 @@ CG solve makes its own work vectors, state and graph, as before commit 31c75b7; 
 float32 blocks stay kept, physics/linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
-``--warm-start``, ``--exact-shifts``, ``--exact-below``, ``--lag-move-ratio`` and
-``--friction-lag-moves`` are the Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
+``--warm-start``, ``--exact-below``, ``--lag-move-ratio`` and ``--friction-lag-moves`` are the Newton variants of
+scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
 one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
 marker difference per frame).
@@ -124,7 +124,6 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
-         exact_shifts: str = solver_variants.EXACT_SHIFTS_OPTION,
          lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION,
          friction_lag_moves: int | None = typer.Option(None, min=1, help="replace the scene's [physics] "
                                                        "friction_lag_moves (per step)"),
@@ -139,9 +138,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
-    solver_variants.apply(exact_shifts, warm_start, exact_below, lag_move_ratio)
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio)
     if clamped_only:
-        QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED, 0.0), (0.0, CLAMPED, 0.0))
+        QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
     if warp_spmv:
@@ -207,7 +206,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
           f"forcing max {forcing_max:g}, lag move ratio {lag_move_ratio:g}, "
-          f"friction lag moves {physics.friction_lag_moves}, exact shifts {newton.EXACT_SHIFTS}, exact below "
+          f"friction lag moves {physics.friction_lag_moves}, exact below "
           f"{newton.EXACT_BELOW:g} tol{', no exact Hessian' if clamped_only else ''}"
           f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "

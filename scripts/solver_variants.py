@@ -1,5 +1,6 @@
 """Newton variants that the FEM timing scripts (fem_phase_profile.py, fem_frame_timing.py) switch on to compare with
-the default in one run (BENCHMARKS.md ``fem_slide_iterations_gpu``)."""
+the default in one run (BENCHMARKS.md ``fem_slide_iterations_gpu``). Imported as a sibling module: run those scripts as
+``python scripts/NAME.py``."""
 
 from __future__ import annotations
 
@@ -11,20 +12,15 @@ from transtac_sim.physics.newton import NewtonSteps
 WARM_STARTS = ("all", "extrapolated", "none")
 
 
-def apply(exact_shifts: str = "", warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
+def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
           lag_move_ratio: float = newton.LAG_MOVE_RATIO) -> None:
-    """``exact_shifts``: comma-separated multiples of |diag H| (newton.EXACT_SHIFTS); ``warm_start``: the guesses a
-    (sub)step may start from (newton.py ``_warm_start``): all, extrapolated (not the slide's carried one), or none (the
-    last converged state); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
+    """``warm_start``: the guesses a (sub)step may start from (newton.py ``_warm_start``): all, extrapolated (not the
+    slide's carried one), or none (the last converged state); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIO."""
     newton.EXACT_BELOW = exact_below
     newton.LAG_MOVE_RATIO = lag_move_ratio
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
-    try:
-        newton.EXACT_SHIFTS = tuple(float(x) for x in exact_shifts.split(",") if x.strip())
-    except ValueError as e:
-        raise typer.BadParameter(f"--exact-shifts must be comma-separated numbers, got {exact_shifts!r}") from e
     if warm_start != "all":
         guesses = NewtonSteps._guesses
         NewtonSteps._carried = lambda self, shift: None
@@ -32,8 +28,6 @@ def apply(exact_shifts: str = "", warm_start: str = "all", exact_below: float = 
             [] if warm_start == "none" else [g for g in guesses(self, step) if g is not None])
 
 
-EXACT_SHIFTS_OPTION = typer.Option("", help="the exact Hessian plus these multiples of |diag H| (comma-separated), "
-                                   "tried before the clamped one (newton.EXACT_SHIFTS)")
 WARM_START_OPTION = typer.Option("all", help="the guesses a (sub)step may start from: all, extrapolated (no carried "
                                  "guess on slides) or none")
 EXACT_BELOW_OPTION = typer.Option(newton.EXACT_BELOW, min=0.0, help="newton.EXACT_BELOW (multiples of newton_tol_mm)")

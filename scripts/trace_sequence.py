@@ -47,8 +47,6 @@ def _trace_newton() -> None:
 
     def logged_solve(self, H, rhs, definite=False, **kwargs):
         du = solve(self, H, rhs, definite, **kwargs)
-        if kwargs.get("shift"):
-            last["which"] = f"{last.get('which')} + {kwargs['shift']:g} |diag|"
         outcome = "not positive definite" if du is None else (f"shifted {self.last_shift:g}" if self.last_shift
                                                                  else "step")
         step = f", max |du| {float(np.max(np.abs(du.numpy()))):.2e} mm" if du is not None else ""

@@ -329,23 +329,3 @@ def test_contact_sides_are_kept_until_contact_reaches_beyond_them():
     assert chooser.update(stiff.reshape(-1)) and chooser.current.mask[far] and not chooser.current.mask[0]
     stiff[:] = False
     assert not chooser.update(stiff.reshape(-1))  # nothing touches: nothing to add
-
-
-@pytest.mark.parametrize("method", ["direct", "cg"])
-def test_shifted_solve_solves_the_shifted_system(method):
-    """``solve(..., shift=s)`` (newton.EXACT_SHIFTS) solves H + s |diag H| on the free dofs, on both paths, against
-    scipy's solution of that system."""
-    solver, ind = _pressed_solver()
-    linear = LinearSolver(method, solver._fixed_nodes, solver.device)
-    g = solver._gradient(ind).numpy()
-    g[solver._fixed_nodes] = 0.0
-    H = solver._hessian(ind, 1.0, True)
-    projected = wp.sparse.bsr_copy(H)
-    wp.launch(_project_fixed_blocks, dim=H.nrow, inputs=[projected.offsets, projected.row_counts, projected.columns,
-                                                         projected.values, linear._fixed])
-    A = bsr_to_scipy(projected).tocsr()[linear._free][:, linear._free]
-    expected = spla.spsolve((A + 0.1 * sp.diags(np.abs(A.diagonal()))).tocsc(), -g.reshape(-1)[linear._free])
-    du = linear.solve(H, wp.array(-g, dtype=wp.vec3d), definite=True, rtol=1e-10, shift=0.1)
-    assert du is not None and linear.last_shift == 0.0  # a requested shift, not the device's last resort
-    np.testing.assert_allclose(du.numpy().reshape(-1)[linear._free], expected, rtol=0,
-                               atol=1e-6 * np.abs(expected).max())

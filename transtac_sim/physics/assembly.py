@@ -126,7 +126,7 @@ class Assembly:
                           values={"st": self._contact_state}, output=g, add=True)
         return g
 
-    def _hessian(self, ind, geometric: float, clamp: bool = True) -> BsrMatrix:
+    def _hessian(self, ind, geometric: float, clamp: int = elasticity.CLAMPED) -> BsrMatrix:
         """The Hessian at self.u, summed into one kept matrix with the elements' whole sparsity (``self._H``: the
         linear solver may change it in place; the next call overwrites it); ``geometric`` and ``clamp`` select the
         volumetric term's geometric part (elasticity.py).

@@ -155,8 +155,7 @@ class LinearSolver:
         self._work: DeviceWork | None = None  # the device path's kept arrays (``_device_work``)
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
-              rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None,
-              shift: float = 0.0) -> wp.array | None:
+              rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device). ``H`` is changed: its fixed rows and columns are projected out
         in place (the caller assembles it anew for each system, assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
@@ -165,15 +164,10 @@ class LinearSolver:
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
         ``guess`` (nodes, 3): where the direct path's PCG starts (Newton's step estimate for the same right-hand
-        side; the device CG starts from 0). ``shift`` > 0: H + shift |diag(H)| is solved instead (newton.EXACT_SHIFTS).
-        Without ``definite``, a system the device CG does not solve is shifted (``_solve_shifted``)."""
+        side; the device CG starts from 0). Without ``definite``, a system the device CG does not solve is shifted
+        (``_solve_shifted``)."""
         self.forget()
         self.last_shift = 0.0
-        if shift > 0.0:  # H + shift |diag(H)| (Levenberg-Marquardt; newton.EXACT_SHIFTS)
-            structure = [H.offsets, H.row_counts, H.columns, H.values]
-            d = wp.empty(H.nrow, dtype=wp.vec3d, device=self.device)
-            wp.launch(_diagonal_magnitudes, dim=H.nrow, device=self.device, inputs=[*structure, d])
-            wp.launch(_add_to_diagonal, dim=H.nrow, device=self.device, inputs=[*structure, d, wp.float64(shift)])
         if self.method == "direct":
             return self._solve_direct(H, rhs, definite, rtol or self.cg_tol, exact_below, guess)
         x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)

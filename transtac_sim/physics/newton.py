@@ -83,19 +83,13 @@ STALL_STEPS = 10
 STALL_ALPHA = 1.0 / 16.0
 
 #: friction's lag is moved once Newton's estimated remaining step is below this fraction of |u - u_lag| (``_move_lag``):
-#: moved earlier (0.3, 1.0) the press_slide frames took more Newton iterations and their markers left the lag-converged
-#: solution by up to 0.45 mm (BENCHMARKS.md ``fem_slide_iterations_gpu``)
+#: moved earlier (0.3, 1.0; with a second Hessian since removed) the press_slide frames took more Newton iterations and
+#: their markers left the lag-converged solution by up to 0.45 mm (BENCHMARKS.md ``fem_slide_iterations_gpu``)
 LAG_MOVE_RATIO = 0.1
 
-#: the exact Hessian plus these multiples of |diag H| (Levenberg-Marquardt, linear.py ``solve(shift=...)``), tried in turn
-#: before the clamped one where the exact one is not positive definite; none by default: with (0.01, 0.1) press_slide
-#: took 172-173 instead of 174-175 Newton iterations and train_random sequences 0-13 8 % more on an H100
-#: (BENCHMARKS.md ``fem_slide_iterations_gpu``)
-EXACT_SHIFTS: tuple[float, ...] = ()
-
 #: a Newton system's CG goes on to the tight tolerance (linear.py ``cg_tol``) where its step is below this many
-#: newton_tol_mm: there the step's length decides the convergence test, and a loosely solved step is shorter (10 took 13 %
-#: more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
+#: newton_tol_mm: there the step's length decides the convergence test, and a loosely solved step is shorter
+#: (10 took 13 % more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
 EXACT_BELOW = 100.0
 
 
@@ -115,9 +109,9 @@ class NewtonSteps:
         the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation; not
         after a lag move made on an estimate, where the step is seldom converged), otherwise it is the full Newton
         step itself; the estimate also starts the next system's solve on the host. The linear solver solves each
-        system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within 100 newton_tol_mm. At
-        convergence a penetration above ``penetration_tol_mm`` raises the contact stiffness
-        (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E
+        system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within
+        ``EXACT_BELOW`` newton_tol_mm. At convergence a penetration above ``penetration_tol_mm`` raises the contact
+        stiffness (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E
         (quadratic interpolation) never accepts a step that makes any det F <= 0. Iterations count Newton steps
         (each assembles the exact Hessian and, where that is not positive definite, the clamped or Gauss-Newton
         one)."""
@@ -159,10 +153,10 @@ class NewtonSteps:
             rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
             rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)
             ladder = self._hessian_ladder()
-            for rung, (geometric, clamp, shift) in enumerate(ladder):  # all but the last must be positive definite
-                # near convergence (the step below 100 tol) the step's length decides the convergence test
+            for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
+                # near convergence (the step below EXACT_BELOW tol) the step's length decides the convergence test
                 du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
-                                        rtol=rtol, exact_below=EXACT_BELOW * tol, guess=estimate, shift=shift)
+                                        rtol=rtol, exact_below=EXACT_BELOW * tol, guess=estimate)
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
@@ -218,21 +212,20 @@ class NewtonSteps:
         cap = self.settings.max_newton_iterations
         return cap if cap is not None else (40 if self._linear.method == "direct" else 120)
 
-    def _hessian_ladder(self) -> tuple[tuple[float, int, float], ...]:
-        """(geometric, clamp, shift) of the Hessians tried in turn for a Newton step: the exact one (then, with
-        ``EXACT_SHIFTS``, shifted), the clamped one, then Gauss-Newton (elasticity.py). A Hessian other than the last is
-        passed over where the linear solver finds it is not positive definite: CHOLMOD on the host, the device CG at its first direction of non-positive
-        curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive definite on
-        train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform compression
-        with the barrier acting it is, tests/test_physics_barrier.py). The last is solved whatever it is: on the host
-        by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (linear.py)."""
-        exact = tuple((1.0, EXACT, shift) for shift in (0.0, *EXACT_SHIFTS))
-        return (*exact, (1.0, CLAMPED, 0.0), (0.0, CLAMPED, 0.0))
+    def _hessian_ladder(self) -> tuple[tuple[float, int], ...]:
+        """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one, the clamped one, then
+        Gauss-Newton (elasticity.py ``EXACT``, ``CLAMPED``). A Hessian other than the last is passed over where the
+        linear solver finds it is not positive definite: CHOLMOD on the host, the device CG at its first direction of
+        non-positive curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive
+        definite on train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform
+        compression with the barrier acting it is, tests/test_physics_barrier.py). The last is solved whatever it is: on
+        the host by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (linear.py)."""
+        return ((1.0, EXACT), (1.0, CLAMPED), (0.0, CLAMPED))
 
     def _move_lag(self, ind, remaining: float) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
-        u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, 0.1 x |u - u_lag|), and
-        |u - u_lag| >= 10 newton_tol_mm. True if moved (an inexact fixed point on the lag: each lag is solved
+        u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, LAG_MOVE_RATIO x |u - u_lag|),
+        and |u - u_lag| >= 10 newton_tol_mm. True if moved (an inexact fixed point on the lag: each lag is solved
         only as far as the next one makes worth it, instead of to the tolerance)."""
         change = float(np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy())))
         tol = self.settings.newton_tol_mm

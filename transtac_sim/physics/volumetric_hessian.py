@@ -127,7 +127,7 @@ class VolumetricHessian:
             offsets=arr(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), int),
             sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(rows), dtype=wp.mat33d, device=device))
 
-    def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: bool,
+    def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: int,
                barrier_tets: wp.array) -> None:
         """Adds the volumetric Hessian at displacement ``u`` (dof values, mm) to ``total``'s blocks, in place."""
         device = total.values.device
