@@ -17,10 +17,10 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
     """``warm_start``: the guesses a (sub)step may start from (newton.py ``_warm_start``): all, extrapolated (not the
     slide's carried one), or none (the last converged state); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIO."""
-    newton.EXACT_BELOW = exact_below
-    newton.LAG_MOVE_RATIO = lag_move_ratio
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
+    newton.EXACT_BELOW = exact_below
+    newton.LAG_MOVE_RATIO = lag_move_ratio
     if warm_start != "all":
         guesses = NewtonSteps._guesses
         NewtonSteps._carried = lambda self, shift: None
