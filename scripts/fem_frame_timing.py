@@ -152,8 +152,7 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
          max_newton_iterations: int | None = typer.Option(None, min=1, help="replace SolverSettings' "
                                                           "max_newton_iterations (per sub-step)"),
-         friction_lag_moves: int | None = typer.Option(None, min=1, help="replace the scene's [physics] "
-                                                       "friction_lag_moves (per step)"),
+         friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION) -> None:

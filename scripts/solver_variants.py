@@ -32,3 +32,4 @@ WARM_START_OPTION = typer.Option("all", help="the guesses a (sub)step may start 
                                  "guess on slides) or none")
 EXACT_BELOW_OPTION = typer.Option(newton.EXACT_BELOW, min=0.0, help="newton.EXACT_BELOW (multiples of newton_tol_mm)")
 LAG_MOVE_RATIO_OPTION = typer.Option(newton.LAG_MOVE_RATIO, min=0.0, help="newton.LAG_MOVE_RATIO")
+FRICTION_LAG_MOVES_OPTION = typer.Option(None, min=1, help="replace the scene's [physics] friction_lag_moves (per step)")
