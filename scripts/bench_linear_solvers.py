@@ -58,8 +58,7 @@ def record_systems(scene: Path, frames: int, device: str, every: int = 5, keep: 
         wp.synchronize_device()
         t0 = time.perf_counter()
         K = wp.sparse.bsr_copy(H)  # the solver projects H in place: keep a projected copy, as CG receives it
-        wp.launch(linear._project_fixed_blocks, dim=K.nrow, device=K.device,
-                  inputs=[K.offsets, K.row_counts, K.columns, K.values, self._fixed])
+        linear.project_fixed(K, self._fixed, linear.fixed_blocks(K, self._fixed.numpy() > 0.5))
         b = wp.empty_like(rhs)
         wp.launch(linear._free_part, dim=len(b), device=b.device, inputs=[rhs, self._fixed, b])
         wp.synchronize_device()

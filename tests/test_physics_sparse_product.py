@@ -22,7 +22,7 @@ from transtac_sim.physics import (
 )
 from transtac_sim.physics.box_mesh import gel_block
 from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
-from transtac_sim.physics.linear import SHIFTS, LinearSolver, _project_fixed_blocks
+from transtac_sim.physics.linear import SHIFTS, LinearSolver, fixed_blocks, project_fixed
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
@@ -92,8 +92,7 @@ def test_fixed_projection_matches_warp_fem():
     by_fem = wp.sparse.bsr_copy(H)
     fem.project_linear_system(by_fem, wp.zeros(H.nrow, dtype=wp.vec3d), wp.sparse.bsr_diag(wp.array(blocks, dtype=wp.mat33d)),
                               normalize_projector=False)
-    wp.launch(_project_fixed_blocks, dim=H.nrow, inputs=[H.offsets, H.row_counts, H.columns, H.values,
-                                                         wp.array(fixed.astype(np.float64), dtype=wp.vec3d)])
+    project_fixed(H, wp.array(fixed.astype(np.float64), dtype=wp.vec3d), fixed_blocks(H, fixed))
     A, B = bsr_to_scipy(by_fem), bsr_to_scipy(H)
     assert abs(A - B).max() <= 1e-14 * abs(A).max() and abs(A - bsr_to_scipy(_pressed_hessian())).max() > 0.0
 
@@ -155,8 +154,7 @@ def test_device_last_resort_solves_the_shifted_system():
     rhs = wp.array(-g, dtype=wp.vec3d)
     H = solver._hessian(ind, 0.0, True)
     projected = wp.sparse.bsr_copy(H)
-    wp.launch(_project_fixed_blocks, dim=H.nrow, inputs=[projected.offsets, projected.row_counts, projected.columns,
-                                                         projected.values, linear._fixed])
+    project_fixed(projected, linear._fixed, fixed_blocks(projected, solver._fixed_nodes))
     A = bsr_to_scipy(projected).tocsr()[linear._free][:, linear._free]
     du = linear.solve(H, rhs, definite=False, rtol=1e-10)
     assert du is not None and linear.shifted_solves == 1 and linear.last_shift in SHIFTS

@@ -10,6 +10,9 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   deviatoric part's sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point
   per tet) is added to it tet by tet (volumetric_hessian.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
+- E(u) is summed on the device and read once per evaluation (``_energy``; with the fixed dofs' projection on the
+  blocks it changes only, linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster in three of four runs,
+  BENCHMARKS.md ``fem_host_reads_gpu``);
 - contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``), its Hessian
   only over those where it can be non-zero (contact_sides.py).
 """
@@ -24,6 +27,7 @@ import warp.fem as fem
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
+from transtac_sim.physics.definite_cg import add_dot
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
@@ -94,18 +98,22 @@ class Assembly:
         return self._dev
 
     def _energy(self, u, ind) -> float:
+        """E(u) (N mm): each term added into one device scalar (``self._energy_sum``), read once."""
         vals = {"params": self._params}
         dev = self._deviatoric()
-        dev.product.matvec(u.dof_values, dev.c, dev.work, 1.0, 2.0)  # H_dev u + 2 c
-        e = 0.5 * wp.utils.array_inner(u.dof_values, dev.work)
-        e += fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals)
-        e += self._barrier_energy(u)
+        total = self._energy_sum
+        total.zero_()
+        dev.product.matvec(u.dof_values, dev.c, dev.work, 0.5, 1.0)  # H_dev u / 2 + c: E_dev = u . that
+        add_dot(u.dof_values, dev.work, total)
+        fem.integrate(elasticity.volumetric_energy_form, quadrature=self._q_vol, fields={"u": u}, values=vals,
+                      output=total, add=True)
+        if self.settings.barrier_det_f > 0.0:
+            fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": u},
+                          values=self._barrier_values(), output=total, add=True)
         if ind.count:
-            e += fem.integrate(
-                contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
-                values=self._contact_values(ind),
-            )
-        return float(e)
+            fem.integrate(contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
+                          values=self._contact_values(ind), output=total, add=True)
+        return float(total.numpy()[0])
 
     def _gradient(self, ind) -> wp.array:
         """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""

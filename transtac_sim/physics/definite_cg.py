@@ -169,6 +169,13 @@ def _decide(state: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int3
     condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
 
 
+def add_dot(a: wp.array, b: wp.array, out: wp.array, slot: int = 0) -> None:
+    """out[slot] += a . b (vec3d arrays; out float64 on their device) without a host read: block-wise tile sums added
+    atomically, as the CG's dot products."""
+    wp.launch_tiled(_dot, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=a.device,
+                    inputs=[a, b, out, slot, DOT_BLOCKS])
+
+
 class CgWorkspace:
     """``definite_cg``'s work vectors (r, z, p, q), state and last captured CUDA graph, kept between solves of ``n``
     3-vectors on ``device`` (a solver's matrices change arrays only when their sparsity does)."""

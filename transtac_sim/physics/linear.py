@@ -15,7 +15,7 @@
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
   returns None), its matrix-vector product one warp per block row on the matrix rounded to float32 (sparse_product.py:
   half the bytes of the product that is most of CG's time); the fixed rows/columns are
-  projected out in place (``_project_fixed_blocks``). Its relative tolerance is Newton's forcing term
+  projected out in place (``_project_fixed_blocks``, on the blocks it changes). Its relative tolerance is Newton's forcing term
   (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both paths) is a
   relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
   press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
@@ -47,25 +47,46 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
 from transtac_sim.physics.host_factorisation import cholmod_module, factorise, pcg, sparsity_pattern
-from transtac_sim.physics.sparse_product import block_row_operator, block_row_range, diagonal_block
+from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
 
 
 @wp.kernel(enable_backward=False)
-def _project_fixed_blocks(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+def _project_fixed_blocks(touched: wp.array(dtype=int), rows: wp.array(dtype=int), columns: wp.array(dtype=int),
                           blocks: wp.array(dtype=wp.mat33d), fixed: wp.array(dtype=wp.vec3d)):
-    """H <- (I - P) H (I - P) + P in place, P the diagonal 0/1 mask of the fixed components (one thread per block
-    row): what ``warp.fem.project_linear_system`` computes with two sparse matrix products and three copies."""
-    row = wp.tid()
-    blocks_of_row = block_row_range(offsets, row_counts, row)
-    f = fixed[row]
+    """H <- (I - P) H (I - P) + P in place, P the diagonal 0/1 mask of the fixed components, on the blocks ``touched``
+    (in block rows ``rows``): those whose row or column has a fixed component (``fixed_blocks``), the only ones the
+    projection changes. What ``warp.fem.project_linear_system`` computes with two sparse matrix products and three
+    copies."""
+    t = wp.tid()
+    k = touched[t]
+    row = rows[t]
+    col = columns[k]
     one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
-    keep = wp.diag(one - f)
-    for k in range(blocks_of_row[0], blocks_of_row[1]):
-        col = columns[k]
-        block = keep * blocks[k] * wp.diag(one - fixed[col])
-        if col == row:
-            block += wp.diag(f)
-        blocks[k] = block
+    block = wp.diag(one - fixed[row]) * blocks[k] * wp.diag(one - fixed[col])
+    if col == row:
+        block += wp.diag(fixed[row])
+    blocks[k] = block
+
+
+def fixed_blocks(H: BsrMatrix, fixed: np.ndarray) -> tuple[wp.array, wp.array]:
+    """(block indices, their block rows) of the blocks of H whose row or column node has a fixed component (``fixed``:
+    bool, (nodes, 3)), on H's device: what ``_project_fixed_blocks`` changes (on press_slide the bottom face's rows
+    and columns, a few percent of the blocks; one thread per block row over every block took 309 us per call on an
+    H100, BENCHMARKS.md ``fem_slide_iterations_gpu``)."""
+    offsets = H.offsets.numpy()
+    counts = H.row_counts.numpy() if H.row_counts else np.diff(offsets)
+    rows = np.repeat(np.arange(H.nrow), counts)
+    k = np.repeat(offsets[:-1] - (np.cumsum(counts) - counts), counts) + np.arange(len(rows))  # skips unused slots
+    node_fixed = fixed.any(axis=1)
+    hit = node_fixed[rows] | node_fixed[H.columns.numpy()[k]]
+    return (wp.array(k[hit].astype(np.int32), dtype=int, device=H.device),
+            wp.array(rows[hit].astype(np.int32), dtype=int, device=H.device))
+
+
+def project_fixed(H: BsrMatrix, fixed: wp.array, blocks: tuple[wp.array, wp.array]) -> None:
+    """H <- (I - P) H (I - P) + P in place (``_project_fixed_blocks``), P = diag(``fixed``: 1.0 where fixed, vec3d per
+    node), on the ``blocks`` of ``fixed_blocks``."""
+    wp.launch(_project_fixed_blocks, dim=len(blocks[0]), device=H.device, inputs=[*blocks, H.columns, H.values, fixed])
 
 
 @wp.kernel(enable_backward=False)
@@ -153,6 +174,7 @@ class LinearSolver:
         self._converged_iterations = 0  # CG iterations of the last converged device solve
         self._last_cg: tuple | None = None  # the last converged device system's (operator, preconditioner)
         self._work: DeviceWork | None = None  # the device path's kept arrays (``_device_work``)
+        self._fixed_blocks: tuple | None = None  # (sparsity key, blocks, rows) of ``fixed_blocks`` for the last matrix
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
               rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
@@ -334,8 +356,10 @@ class LinearSolver:
     def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float) -> wp.array | None:
         """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
         left as it was; H is projected in place)."""
-        wp.launch(_project_fixed_blocks, dim=H.nrow, device=self.device,
-                  inputs=[H.offsets, H.row_counts, H.columns, H.values, self._fixed])
+        key = (H.offsets.ptr, H.columns.ptr, H.row_counts.ptr if H.row_counts else 0, H.nrow)
+        if self._fixed_blocks is None or self._fixed_blocks[0] != key:  # once per sparsity: the solver keeps its matrix
+            self._fixed_blocks = (key, *fixed_blocks(H, self._fixed.numpy() > 0.5))
+        project_fixed(H, self._fixed, self._fixed_blocks[1:])
         b = wp.empty_like(rhs)
         wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
         work = self._device_work()
