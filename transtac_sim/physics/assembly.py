@@ -10,7 +10,8 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   deviatoric part's sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point
   per tet) is added to it tet by tet (volumetric_hessian.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
-- E(u) is summed on the device and read once per evaluation (``_energy``; with the fixed dofs' projection on the
+- E(u) is summed on the device and read once per evaluation (``_energy``; where friction's lag may move, max |u - u_lag|
+  is reduced on the device too, ``_max_difference``, and the contact Hessian's stiff points are found there; with the fixed dofs' projection on the
   blocks it changes only, linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster in three of four runs,
   BENCHMARKS.md ``fem_host_reads_gpu``);
 - contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``), its Hessian
@@ -37,6 +38,35 @@ def _add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), tot
     """total[slots[k]] += part[k]: a part's blocks added at their places in the sum (each place once per part)."""
     k = wp.tid()
     total[slots[k]] = total[slots[k]] + part[k]
+
+
+REDUCTION_THREADS = 256  # one thread block strides over the vector: no atomics, the same result on every run
+
+
+@wp.kernel(enable_backward=False)
+def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+    """out[0] = max over entries and components of |a - b| (one thread block)."""
+    _, lane = wp.tid()
+    largest = wp.float64(0.0)
+    for i in range(lane, a.shape[0], wp.block_dim()):
+        d = a[i] - b[i]
+        largest = wp.max(largest, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+    total = wp.tile_max(wp.tile(largest))
+    if lane == 0:
+        out[0] = total[0]
+
+
+@wp.kernel(enable_backward=False)
+def _stiff_points(k_normal: wp.array(dtype=wp.float64), k_slip: wp.array(dtype=wp.float64),
+                  k_slip_dir: wp.array(dtype=wp.float64), count: int, stiff: wp.array(dtype=wp.int8)):
+    """stiff[q] = 1 where any indenter has a normal or friction stiffness at contact quadrature point q."""
+    q = wp.tid()
+    flag = wp.int8(0)
+    for i in range(count):
+        j = q * count + i
+        if k_normal[j] != wp.float64(0.0) or k_slip[j] != wp.float64(0.0) or k_slip_dir[j] != wp.float64(0.0):
+            flag = wp.int8(1)
+    stiff[q] = flag
 
 
 class DeviatoricTerm(NamedTuple):
@@ -124,7 +154,8 @@ class Assembly:
         dev.product.matvec(self.u.dof_values, dev.c, g, 1.0, 1.0)  # H_dev u + c
         fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
                       output=g, add=True)
-        if self._barrier_energy(self.u) > 0.0:  # 0 where every det F is above the threshold (the usual case)
+        self._barrier_acts = self._barrier_energy(self.u) > 0.0  # False where every det F is above the threshold
+        if self._barrier_acts:  # (the usual case); ``_hessian`` reads it at the same u
             fem.integrate(elasticity.barrier_gradient_form, quadrature=self._q_det, fields=f,
                           values=self._barrier_values(), output=g, add=True)
         if ind.count:
@@ -135,7 +166,8 @@ class Assembly:
         return g
 
     def _hessian(self, ind, geometric: float, clamp: int = elasticity.CLAMPED) -> BsrMatrix:
-        """The Hessian at self.u, summed into one kept matrix with the elements' whole sparsity (``self._H``: the
+        """The Hessian at self.u, where the last ``_gradient`` was evaluated (whose contact state and barrier flag it
+        takes), summed into one kept matrix with the elements' whole sparsity (``self._H``: the
         linear solver may change it in place; the next call overwrites it); ``geometric`` and ``clamp`` select the
         volumetric term's geometric part (elasticity.py).
 
@@ -149,8 +181,8 @@ class Assembly:
         parts = {}
         hessian = {"geometric": geometric, "clamp": int(clamp), "barrier_tets": self._barrier_tets}
         self._barrier_tets.zero_()
-        barrier = self._barrier_energy(self.u) > 0.0  # only where some det F is below the barrier's threshold
-        if barrier:  # first: it marks the tets where the barrier acts, whose clamped pressure is halved
+        if self._barrier_acts:  # some det F is below the barrier's threshold at the last ``_gradient``'s u, this one:
+            # first, since it marks the tets where the barrier acts, whose clamped pressure is halved
             barrier_qp = {"F_qp": self._F_det, "b_qp": self._b_det}
             fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
                             values=self._barrier_values() | barrier_qp | hessian)
@@ -174,9 +206,11 @@ class Assembly:
         normal or friction stiffness in the contact state of the last ``_gradient``, and their neighbours); None where
         there are none. Its matrix and places in the sum are made anew when the subset is."""
         st = self._contact_state
-        n = self._q_contact.total_point_count() * ind.count
-        stiff = (st.k_normal.numpy()[:n] != 0.0) | (st.k_slip.numpy()[:n] != 0.0) | (st.k_slip_dir.numpy()[:n] != 0.0)
-        if self._contact_sides.update(stiff.reshape(-1, ind.count).any(axis=1)):
+        points = self._q_contact.total_point_count()
+        stiff = wp.empty(points, dtype=wp.int8, device=self.device)
+        wp.launch(_stiff_points, dim=points, device=self.device,
+                  inputs=[st.k_normal, st.k_slip, st.k_slip_dir, ind.count, stiff])
+        if self._contact_sides.update(stiff.numpy().astype(bool)):
             self._H_parts.pop("contact", None)
             self._H_slots.pop("contact", None)
         subset = self._contact_sides.current
@@ -225,6 +259,13 @@ class Assembly:
         a = g.numpy()
         a[self._fixed_nodes] = 0.0
         return float(np.linalg.norm(a))
+
+    def _max_difference(self, a: wp.array, b: wp.array) -> float:
+        """max |a - b| over the entries and components of two vec3d arrays (mm), reduced on the device."""
+        out = wp.empty(1, dtype=wp.float64, device=self.device)
+        wp.launch_tiled(_max_abs_difference, dim=[1], block_dim=REDUCTION_THREADS, device=self.device,
+                        inputs=[a, b, out])
+        return float(out.numpy()[0])
 
     def _min_det(self, u) -> float:
         J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)

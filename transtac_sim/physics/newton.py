@@ -227,8 +227,10 @@ class NewtonSteps:
         u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, LAG_MOVE_RATIO x |u - u_lag|),
         and |u - u_lag| >= 10 newton_tol_mm. True if moved (an inexact fixed point on the lag: each lag is solved
         only as far as the next one makes worth it, instead of to the tolerance)."""
-        change = float(np.max(np.abs(self.u.dof_values.numpy() - self.u_lag.dof_values.numpy())))
         tol = self.settings.newton_tol_mm
+        if remaining == np.inf:  # no step estimate: not closer than any change (the usual case; no device read)
+            return False
+        change = self._max_difference(self.u.dof_values, self.u_lag.dof_values)
         if change < 10.0 * tol or remaining >= max(tol, LAG_MOVE_RATIO * change):
             return False
         wp.copy(self.u_lag.dof_values, self.u.dof_values)

@@ -126,6 +126,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
         self._poses: list[np.ndarray] | None = None
+        self._barrier_acts = False  # some det F below the barrier's threshold at the last ``_gradient``'s u
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
