@@ -131,8 +131,6 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
          fresh_cg_graphs: bool = typer.Option(False, help="no workspace kept between device CG solves"),
          spmv_lanes: int | None = typer.Option(None, min=1, help="threads per block row of the CG's product"),
-         sliced_spmv: bool = typer.Option(False, help="the CG's product in the sliced layout (sparse_product.py "
-                                          "sliced_operator): one thread per block row and component"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
@@ -154,17 +152,6 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if fresh_cg_graphs:
         kept_cg = linear.definite_cg
         linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
-    if sliced_spmv:
-        layouts = {}
-
-        def sliced(H, single_precision=False, rounded=None):
-            operator = sparse_product.sliced_operator(H, layouts.get("last"))
-            if "last" not in layouts or layouts["last"] is not operator.layout:
-                layouts["last"] = operator.layout
-                print(f"sliced layout: {len(operator.layout.blocks)} slots for {len(operator.layout.source)} blocks")
-            return operator
-
-        linear.block_row_operator = sliced
     if spmv_lanes is not None:
         sparse_product.LANES = spmv_lanes
     if cg_tol is not None:
