@@ -92,6 +92,9 @@ LAG_MOVE_RATIO = 0.1
 #: (10 took 13 % more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
 EXACT_BELOW = 100.0
 
+#: where an indenter moves away from the gel, u_prev scaled by each of these is a warm-start guess (``_warm_start``)
+UNLOAD_SCALES = (0.25, 0.5, 0.75)
+
 
 class NewtonSteps:
     """Newton's method for ``QuasiStaticSolver`` (which provides the fields, assembly and linear solver)."""
@@ -269,7 +272,10 @@ class NewtonSteps:
           Newton next to the solution;
         - u_prev carried along by the indenter's tangential (x, y) translation d, u(X) = u_prev(X - d) (one
           indenter only): the dent moves with the indenter where a slide starts (the step turns from a press,
-          so the last increment points the wrong way).
+          so the last increment points the wrong way);
+        - u_prev scaled by ``UNLOAD_SCALES`` where an indenter moves away from the gel (+z: the contact surface
+          faces +z): on a release the gel springs back towards its rest shape, and neither guess above points
+          there (BENCHMARKS.md ``fem_unload_warm_start``).
 
         True if a guess was taken and the largest penetration there is within 2x the last step's plus
         ``penetration_tol_mm`` (a guess whose contact can serve as friction's first lag)."""
@@ -302,6 +308,11 @@ class NewtonSteps:
         shift = np.array([step[0], step[1], 0.0]) if len(self.indenters) == 1 else np.zeros(3)
         if np.linalg.norm(shift) > self.settings.newton_tol_mm:
             yield self._carried(shift)
+        if np.any(step.reshape(-1, 6)[:, 2] > self.settings.newton_tol_mm):  # some indenter lifts off the gel
+            for scale in UNLOAD_SCALES:
+                guess = wp.zeros_like(self.u_prev.dof_values)
+                fem.linalg.array_axpy(x=self.u_prev.dof_values, y=guess, alpha=scale, beta=0.0)
+                yield guess
 
     def _carried(self, shift: np.ndarray) -> wp.array:
         """Dof values of u_prev(X - shift) (u_prev itself at nodes whose X - shift is outside the gel, and 0 on the
