@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 
 from transtac_sim.physics import (
     ElasticMaterial,
@@ -213,6 +214,39 @@ def test_frictionless_press_takes_few_newton_iterations():
     one = direct.solve_frame([_lift(4.0 + 1e-3 - 0.3)])
     again = solver.solve_frame([_lift(4.0 + 1e-3 - 0.3)])  # the same pose: a hold frame
     np.testing.assert_allclose(again.forces_n[0, 2], one.forces_n[0, 2], rtol=1e-3)  # measured: 5e-5
+
+
+def test_release_starts_from_the_scaled_state_and_ends_as_a_direct_press():
+    """A release (the indenter lifts 0.3 -> 0.1 mm) takes a warm start: u_prev scaled (newton.py ``UNLOAD_SCALES``), as
+    the extrapolated press increment points the wrong way; the frame equals pressing to 0.1 mm at once (frictionless
+    elasticity is path independent)."""
+    V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
+    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0))
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])
+    solver.start([_lift(4.0 + 1e-3)])
+    solver.solve_frame([_lift(4.0 - 0.3)])
+    step = solver._pose_step([_lift(4.0 - 0.3)], [_lift(4.0 - 0.1)])
+    guesses = [g.numpy() for g in solver._guesses(step)]
+    u_prev = solver.u_prev.dof_values.numpy()
+    assert len(guesses) == len(newton.UNLOAD_SCALES)  # the press increment extrapolated backwards is not offered
+    for guess, scale in zip(guesses, newton.UNLOAD_SCALES, strict=True):
+        np.testing.assert_allclose(guess, scale * u_prev, rtol=0.0, atol=1e-15)
+    released = solver.solve_frame([_lift(4.0 - 0.1)])
+    assert released.record.converged and released.record.warm_starts == 1, released.record
+    direct = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere])
+    direct.start([_lift(4.0 + 1e-3)])
+    ref = direct.solve_frame([_lift(4.0 - 0.1)])
+    np.testing.assert_allclose(released.forces_n[0, 2], ref.forces_n[0, 2], rtol=1e-3)
+    np.testing.assert_allclose(released.displacement_mm, ref.displacement_mm, atol=1e-3 * np.abs(ref.displacement_mm).max())
+
+
+def test_max_difference_on_the_device_is_numpys():
+    """Friction's lag test reads max |u - u_lag| reduced on the device (assembly.py ``_max_difference``): exactly numpy's."""
+    _, solver = _sphere_on_block(0.5)
+    a, b = np.random.default_rng(3).standard_normal((2, len(solver.u.dof_values), 3))
+    b[123, 1] = a[123, 1] + 7.5  # the largest difference, in one component of one node
+    got = solver._max_difference(*(wp.array(v, dtype=wp.vec3d, device=solver.device) for v in (a, b)))
+    assert got == np.max(np.abs(a - b)) and abs(got - 7.5) < 1e-12
 
 
 def test_carried_warm_start_shifts_an_affine_field_exactly():
