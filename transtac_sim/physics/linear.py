@@ -15,9 +15,10 @@
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
   returns None), its matrix-vector product one warp per block row on the matrix rounded to float32 (sparse_product.py:
   half the bytes of the product that is most of CG's time); the fixed rows/columns are
-  projected out in place (``_project_fixed_blocks``, on the blocks it changes). Its relative tolerance is Newton's forcing term
-  (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both paths) is a
-  relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is below newton_tol_mm, and on
+  projected out in place (``_project_fixed_blocks``, on the blocks it changes). Its relative tolerance is Newton's
+  forcing term (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both
+  paths) is a relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is
+  below newton_tol_mm, and on
   press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
   forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
   a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
@@ -70,9 +71,9 @@ def _project_fixed_blocks(touched: wp.array(dtype=int), rows: wp.array(dtype=int
 
 def fixed_blocks(H: BsrMatrix, fixed: np.ndarray) -> tuple[wp.array, wp.array]:
     """(block indices, their block rows) of the blocks of H whose row or column node has a fixed component (``fixed``:
-    bool, (nodes, 3)), on H's device: what ``_project_fixed_blocks`` changes (on press_slide the bottom face's rows
-    and columns, a few percent of the blocks; one thread per block row over every block took 309 us per call on an
-    H100, BENCHMARKS.md ``fem_slide_iterations_gpu``)."""
+    bool, (nodes, 3)), on H's device: what ``_project_fixed_blocks`` changes (the bonded face's rows and columns; one
+    thread per block row over every block took 309 us per call on press_slide on an H100, BENCHMARKS.md
+    ``fem_slide_iterations_gpu``)."""
     offsets = H.offsets.numpy()
     counts = H.row_counts.numpy() if H.row_counts else np.diff(offsets)
     rows = np.repeat(np.arange(H.nrow), counts)
