@@ -15,9 +15,10 @@ fewer threads.
 With ``single_precision`` the product reads a copy of the blocks rounded to float32 (40 instead of 80 MB per product
 on press_slide) and does its arithmetic in float64: the device CG's matrix (linear.py). The rounding perturbs each
 entry by at most 2^-24 of itself, and CG then solves the rounded system: its float64 relative residual can exceed
-the tolerance by up to about the condition number times 2^-24. That changes Newton's step, not its solution, which the float64 gradient decides; on press_slide the frames' markers
-agree with the float64 matrix's within the spread of two float64 runs (BENCHMARKS.md ``fem_cg_float32_gpu``). The
-deviatoric term's product (energies and gradients, assembly.py) stays float64.
+the tolerance by up to about the condition number times 2^-24. That changes Newton's step, not its solution, which
+the float64 gradient decides; on press_slide the frames' markers agree with the float64 matrix's within the spread
+of two float64 runs (BENCHMARKS.md ``fem_cg_float32_gpu``). The deviatoric term's product (energies and gradients,
+assembly.py) stays float64.
 """
 
 from __future__ import annotations
