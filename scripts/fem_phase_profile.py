@@ -24,6 +24,9 @@ CG solve makes its own work vectors, state and graph, as before commit 31c75b7; 
 float32 blocks stay kept, physics/linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
+``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
+(linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
+``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
 ``--warm-start``, ``--exact-below``, ``--lag-move-ratio`` and ``--friction-lag-moves`` are the Newton variants of
 scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
@@ -48,6 +51,7 @@ from warp.optim.linear import aslinearoperator, cg
 
 from transtac_sim.dataset.sequence import StageClock
 from transtac_sim.physics import QuasiStaticSolver, linear, newton, sparse_product
+from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
 from transtac_sim.physics.linear import LinearSolver
@@ -57,6 +61,7 @@ from transtac_sim.simulation import simulate_frames
 PHASES = {
     QuasiStaticSolver: ("_gradient", "_energy", "_hessian", "_min_det", "_max_penetration", "_update_lag",
                         "_move_lag", "_warm_start", "_carried", "_indenter_struct", "_barrier_energy"),
+    CoarseSpace: ("update",),  # the coarse level's Galerkin operator and its inverse (coarse_space.py)
     LinearSolver: ("solve", "solve_last", "_cg"),  # solve / solve_last exclusive of _cg: the set-up (sums, projection,
     # preconditioner; on the host path the conversion and factorisation), _cg: the device CG iterations
 }
@@ -133,10 +138,15 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          spmv_lanes: int | None = typer.Option(None, min=1, help="threads per block row of the CG's product"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
+         coarse_cell_mm: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
+                                                     "coarse_cell_mm (the device CG's coarse level; 0: none)"),
+         coarse_refresh_steps: int = typer.Option(linear.COARSE_REFRESH_STEPS, min=1,
+                                                  help="linear.COARSE_REFRESH_STEPS"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
+    linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
     solver_variants.apply(warm_start, exact_below, lag_move_ratio)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
@@ -160,7 +170,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     markers = []
     setup = load_setup(scene)
     physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": linear_solver} | (
-        {"friction_lag_moves": friction_lag_moves} if friction_lag_moves else {}))
+        {"friction_lag_moves": friction_lag_moves} if friction_lag_moves else {}) | (
+        {"coarse_cell_mm": coarse_cell_mm} if coarse_cell_mm is not None else {}))
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = PhaseClock()
     originals = [] if gpu_activity else [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items()
@@ -216,7 +227,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     work = clock.linear_solver._work if clock.linear_solver else None
     print(f"device solves stopped at non-positive curvature: {clock.not_definite}; host factorisations: "
           f"{clock.factorisations}; device CG graphs captured in the kept workspace (all frames): "
-          f"{work.cg.captures if work else 0}")
+          f"{work.cg.captures if work else 0}; coarse level: "
+          f"{(clock.linear_solver.coarse_stats() if clock.linear_solver else {}) or 'none'}")
     print("| phase | calls | s | ms per call | share |")
     print("|---|---|---|---|---|")
     for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):
@@ -255,7 +267,7 @@ def print_gpu_activity(results: list, wall_s: float) -> None:
         print(f"| {kind} | {len(v)} | {sum(v) / 1000:.3f} | {sum(v) / 1000 / wall_s:.1%} |")
     print("| kernel | launches | s | mean us |")
     print("|---|---|---|---|")
-    for name, v in sorted(kernels.items(), key=lambda kv: -sum(kv[1]))[:15]:
+    for name, v in sorted(kernels.items(), key=lambda kv: -sum(kv[1]))[:20]:
         print(f"| {name[:90]} | {len(v)} | {sum(v) / 1000:.3f} | {1000 * sum(v) / len(v):.1f} |")
 
 

@@ -90,7 +90,9 @@ def test_press_moves_the_surface_under_the_sphere_by_the_press_depth(tmp_path):
     # is sqrt(R depth0) ~ 0.9 mm, and outside it Hertz's surface departs from the sphere's profile by 0.015 mm
     # at 1.04 mm and 0.047 mm at 1.2 mm, within this check's 0.05 mm)
     assert r_xy[i] < 1.2 and abs((rest[top][i, 2] - v[top][i, 2]) - (depth0 - sag)) < 0.05
-    assert (v - rest)[:, 2].min() < -0.5 * depth0 and np.abs(v - rest).max() < depth0 + 0.05
+    # nothing moves more than the press (the deepest vertex is the one nearest the axis, checked above: a bound of
+    # half the press depth on it failed on a fresh mesh whose nearest vertex lay farther out, 0.095 against 0.1 mm)
+    assert np.abs(v - rest).max() < depth0 + 0.05
 
     # markers: the P2 displacement at the marker, consistent with the P1 interpolation of the vertices'
     # displacement in its tet. These markers lie far from the 0.2 mm press and move a few micrometres, so

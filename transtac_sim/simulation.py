@@ -117,7 +117,8 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             g.vertices_mm, g.tets, ElasticMaterial(gel.youngs_modulus_mpa, gel.poisson_ratio),
             [RigidIndenter.from_trimesh(i.config.name, i.mesh.mesh, i.config.friction) for i in setup.indenters],
             settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm, linear_solver=cfg.linear_solver,
-                                    slip_eps_mm=cfg.friction_slip_mm, friction_lag_moves=cfg.friction_lag_moves),
+                                    slip_eps_mm=cfg.friction_slip_mm, friction_lag_moves=cfg.friction_lag_moves,
+                                    coarse_cell_mm=cfg.coarse_cell_mm or None),
             device=physics_device(cfg.device))
     faces = g.boundary_faces()
     thickness = setup.sensor.gel_size_mm[2]

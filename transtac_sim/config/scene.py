@@ -84,6 +84,10 @@ class Physics(_Strict):
     linear_solver: Literal["auto", "direct", "cg"] = Field(
         default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
         "auto: cg on a GPU, else direct")
+    coarse_cell_mm: float = Field(
+        default=3.0, ge=0.0, le=100.0, description="the device CG's two-level preconditioner: rigid-body modes of "
+        "the nodes in grid cells of about this size are solved for directly (transtac_sim/physics/coarse_space.py); "
+        "0: block-Jacobi alone")
 
 
 class Render(_Strict):

@@ -14,12 +14,14 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
              p = z + (r . z)_new / (r . z) p
     until |r| <= tol (= max(rtol |b|, atol)) or ``maxiter`` iterations.
 
-M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks) or none. It runs on the device like
+M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a coarse correction on
+rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the device like
 ``warp.optim.linear.cg``: one iteration's kernels are captured in a CUDA graph, and with conditional CUDA graphs
 (CUDA 12.4+) the loop itself is captured too (``wp.capture_while``), so the host waits only for the end;
 otherwise the captured iteration is launched ``CHECK_EVERY`` times between host reads. An iteration is five
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
-entry), the update of p, and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
+entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
+the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
 iteration cap) is one small float64 array, so the kernels of a stopped solve do nothing. Dot products are block-wise tile sums
 added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
@@ -39,6 +41,7 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
+from transtac_sim.physics.coarse_space import CoarseSpace, mat36d, prolong
 from transtac_sim.physics.sparse_product import diagonal_block
 
 CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
@@ -112,7 +115,9 @@ def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.arr
 def _step_precondition(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.vec3d),
                        inverse: wp.array(dtype=wp.mat33d), precondition: int, x: wp.array(dtype=wp.vec3d),
                        r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d), blocks: int):
-    """x += alpha p, r -= alpha q (alpha = r.z / p.q), z = M r, and the sums r . z -> RZ_NEW, |r|^2 -> RR."""
+    """x += alpha p, r -= alpha q (alpha = r.z / p.q), z = M r (block-Jacobi), and the sums r . z -> RZ_NEW,
+    |r|^2 -> RR. With a coarse level its part of z is added where p is updated (``_step_p``) and its part of r . z,
+    (P^T r) . (A_c^-1 P^T r), by the coarse product (coarse_space.py)."""
     block, lane = wp.tid()
     step = state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0)
     alpha = wp.float64(0.0)
@@ -140,10 +145,22 @@ def _step_precondition(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.v
 
 
 @wp.kernel(enable_backward=False)
-def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d)):
+def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d),
+            basis: wp.array(dtype=mat36d), aggregate: wp.array(dtype=int), values: wp.array(dtype=wp.float64),
+            restricted: wp.array(dtype=wp.float64), first: int):
+    """p = z + (r . z)_new / (r . z) p, or p = z before the first iteration (``first``); with a coarse level (``values``
+    = A_c^-1 P^T r not empty) z is block-Jacobi's part and P values is added here, and P^T r (``restricted``, read)
+    is cleared for the next iteration."""
     i = wp.tid()
-    if state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0) and state[RZ_NEW] > wp.float64(0.0):
-        p[i] = z[i] + (state[RZ_NEW] / state[RZ]) * p[i]
+    zi = z[i]
+    if values.shape[0] > 0:
+        zi = zi + prolong(basis, aggregate, values, i)
+        if i < restricted.shape[0]:
+            restricted[i] = wp.float64(0.0)
+    if first != 0:
+        p[i] = zi
+    elif state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0) and state[RZ_NEW] > wp.float64(0.0):
+        p[i] = zi + (state[RZ_NEW] / state[RZ]) * p[i]
 
 
 @wp.kernel(enable_backward=False)
@@ -185,15 +202,21 @@ class CgWorkspace:
         self.state = wp.zeros(9, dtype=wp.float64, device=device)
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
+        self.no_basis = wp.empty(0, dtype=mat36d, device=device)
+        self.no_aggregate = wp.empty(0, dtype=int, device=device)
+        self.no_values = wp.empty(0, dtype=wp.float64, device=device)
         self.graph_key: tuple | None = None  # (operator's graph_key, preconditioner, x) of ``graph``
         self.graph = None
         self.captures = 0  # graphs captured (the rest of the solves on CUDA launched a kept one)
 
 
 def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
-                M: BlockJacobi | None = None, atol: float = 0.0, workspace: CgWorkspace | None = None) -> CgResult:
+                M: BlockJacobi | None = None, atol: float = 0.0, workspace: CgWorkspace | None = None,
+                coarse: CoarseSpace | None = None) -> CgResult:
     """Solves A x = b from the given x (vec3d arrays, updated in place) to |b - A x| <= max(rtol |b|, atol),
     stopping early where A (or M) is found not to be positive definite (x then holds the last iterate).
+    ``coarse`` (with M; its inverse made, ``CoarseSpace.ready``): M becomes the two-level preconditioner
+    M + P A_c^-1 P^T (coarse_space.py).
     ``workspace``: work arrays and the graph kept from earlier solves of the same size (a new one otherwise); the graph is
     reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same."""
     device = b.device
@@ -203,15 +226,26 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     r, z, p, q, state, condition = ws.r, ws.z, ws.p, ws.q, ws.state, ws.condition
     state.zero_()  # the sums below add into it; a kept state holds the last solve's
     inverse = M.inverse_blocks if M is not None else ws.no_preconditioner
+    if coarse is not None and not (M is not None and coarse.ready):
+        raise ValueError("a coarse level needs the block-Jacobi preconditioner and a coarse inverse")
+    prolonged = (coarse.basis, coarse.aggregate, coarse.values, coarse.restricted) if coarse is not None else \
+        (ws.no_basis, ws.no_aggregate, ws.no_values, ws.no_values)
+    if coarse is not None:
+        coarse.restricted.zero_()
 
     def tiled(kernel, *inputs):
         wp.launch_tiled(kernel, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device,
                         inputs=[*inputs, DOT_BLOCKS])
 
+    def step_precondition():
+        tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
+        if coarse is not None:
+            coarse.solve(r, state, RZ_NEW)
+
     # r = b - A x, z = M r, p = z, and the state before the first iteration (ACTIVE 0: no step, sums only)
     A.matvec(x, b, r, -1.0, 1.0)
-    tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
-    wp.copy(p, z)
+    step_precondition()
+    wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 1])
     tiled(_dot, b, b, state, TOL2)
     s = state.numpy()
     tol2 = max(rtol * rtol * s[TOL2], atol * atol)
@@ -225,14 +259,14 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     def iteration():
         A.matvec(p, q, q, 1.0, 0.0)
         tiled(_dot, p, q, state, PQ)
-        tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
-        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p])
+        step_precondition()
+        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 0])
         wp.launch(_decide, dim=1, device=device, inputs=[state, condition])
 
     if device.is_cuda:
         conditional = wp.is_conditional_graph_supported()
         key = getattr(A, "graph_key", None)
-        key = key and (key, inverse.ptr, x.ptr)
+        key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr)
         graph = ws.graph if key and key == ws.graph_key else None
         if graph is None:
             iteration()  # outside any capture: loads the kernels' modules

@@ -11,7 +11,10 @@
   The numeric factorisation runs on the BLAS threads the process has (the solves on one: see
   ``_solve_direct``). ``solve(..., definite=True)`` returns None instead of an LU solve where CHOLMOD
   finds the matrix is not positive definite (Newton then takes the clamped Hessian, see newton.py).
-- ``"cg"``: conjugate gradients with a block-Jacobi preconditioner on the solver's device (the GPU path), stopping
+- ``"cg"``: conjugate gradients on the solver's device (the GPU path), preconditioned with block-Jacobi plus a coarse
+  correction on rigid-body modes of aggregates of nodes (coarse_space.py; its inverse made from the first converged
+  system and again every ``COARSE_REFRESH_STEPS`` load steps; press_slide on an H100: 0.43x the CG iterations, 0.69x
+  the CG's time, BENCHMARKS.md ``fem_coarse_level_gpu``), stopping
   where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
   returns None), its matrix-vector product one warp per block row on the matrix rounded to float32 (sparse_product.py:
   half the bytes of the product that is most of CG's time); the fixed rows/columns are
@@ -30,9 +33,9 @@
   10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
   within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
   ``fem_device_last_resort_gpu``). The last converged system's float32 matrix and
-  preconditioner are kept for ``solve_last`` (in ``DeviceWork``, with the CG's arrays and graph). Block-Jacobi because it is the cheapest per solve here: Warp's
-  FSAI halves CG's iterations but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) costs more than
-  it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
+  preconditioner are kept for ``solve_last`` (in ``DeviceWork``, with the CG's arrays and graph). Warp's FSAI halves
+  CG's iterations too, but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) is made per system and costs
+  more than it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from threadpoolctl import ThreadpoolController
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
+from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
 from transtac_sim.physics.host_factorisation import cholmod_module, factorise, pcg, sparsity_pattern
 from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
@@ -131,25 +135,43 @@ SHIFTS = (1.0e-2, 1.0, 1.0e2)
 ESTIMATE_RTOL = 1.0e-2
 
 
+#: the device CG's coarse inverse (coarse_space.py) is made from the first converged system of the solver, then again
+#: every this many load steps: making it (the Galerkin operator's atomic sums on the device, a Cholesky inverse of about
+#: 1,000 unknowns on the host) costs about as much as a few CG solves, and one made a few frames earlier serves nearly as
+#: well
+COARSE_REFRESH_STEPS = 10
+
+
 @dataclass
 class DeviceWork:
     """What the device path keeps between solves, so that each solve finds the arrays of the last and its CG can launch
-    the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses and the matrix's float32
-    blocks (grown to the largest matrix)."""
+    the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses, the matrix's float32
+    blocks (grown to the largest matrix) and the coarse level of the two-level preconditioner (None: block-Jacobi
+    alone)."""
 
     cg: CgWorkspace
     x: wp.array
     inverse: wp.array
     rounded: wp.array
+    coarse: CoarseSpace | None
 
 
 class LinearSolver:
     """Solves H du = rhs with ``fixed`` (bool, (nodes, 3)) components of du set to 0."""
 
     def __init__(self, method: str, fixed: np.ndarray, device, cg_tol: float = 1.0e-4, cg_maxiter: int = 20000,
-                 reuse_max_iterations: int = 20):
+                 reuse_max_iterations: int = 20, node_positions_mm: np.ndarray | None = None,
+                 coarse_cell_mm: float | None = None):
+        """``node_positions_mm`` (nodes, 3) and ``coarse_cell_mm``: the device CG's coarse level (coarse_space.py;
+        without them, or on the direct path, block-Jacobi alone)."""
         if method not in ("direct", "cg"):
             raise ValueError(f"unknown linear solver {method!r}")
+        if coarse_cell_mm is not None and not coarse_cell_mm > 0.0:
+            raise ValueError(f"coarse_cell_mm must be > 0 (or None for block-Jacobi alone), got {coarse_cell_mm}")
+        self._coarse_setup = (node_positions_mm, fixed, coarse_cell_mm) \
+            if method == "cg" and node_positions_mm is not None and coarse_cell_mm is not None else None
+        self._coarse_tried = False  # the coarse inverse was made or tried in this load step (``new_load_step``)
+        self._steps_since_coarse = 0  # load steps begun since the coarse inverse was made
         self.method = method
         self.device = device
         self.cg_tol = cg_tol
@@ -176,6 +198,12 @@ class LinearSolver:
         self._last_cg: tuple | None = None  # the last converged device system's (operator, preconditioner)
         self._work: DeviceWork | None = None  # the device path's kept arrays (``_device_work``)
         self._fixed_blocks: tuple | None = None  # (sparsity key, blocks, rows) of ``fixed_blocks`` for the last matrix
+
+    def new_load_step(self) -> None:
+        """A new (sub)step begins: every ``COARSE_REFRESH_STEPS``-th, the device CG's coarse inverse is made again from
+        its first converged system (until then the kept one serves, coarse_space.py)."""
+        self._coarse_tried = False
+        self._steps_since_coarse += 1
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
               rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
@@ -210,7 +238,7 @@ class LinearSolver:
             wp.launch(_add_to_diagonal, dim=H.nrow, device=self.device,
                       inputs=[*structure, d, wp.float64(lam - before)])
             before = lam
-            x = self._solve_cg(H, rhs, rtol, 0.0)
+            x = self._solve_cg(H, rhs, rtol, 0.0, coarse_from_this=False)
             if x is not None:
                 self.shifted_solves += 1
                 self.last_shift = lam
@@ -328,23 +356,33 @@ class LinearSolver:
     def _device_work(self) -> DeviceWork:
         """The device path's arrays kept between solves (made on first use)."""
         if self._work is None:
+            coarse = CoarseSpace(*self._coarse_setup, self.device) if self._coarse_setup is not None else None
             self._work = DeviceWork(CgWorkspace(self._node_count, self.device),
                                     wp.empty(self._node_count, dtype=wp.vec3d, device=self.device),
                                     wp.empty(self._node_count, dtype=wp.mat33d, device=self.device),
-                                    wp.empty(0, dtype=wp.mat33f, device=self.device))
+                                    wp.empty(0, dtype=wp.mat33f, device=self.device), coarse)
         return self._work
+
+    def coarse_stats(self) -> dict[str, int]:
+        """The coarse level's size and how often its inverse was made or refused (empty without one)."""
+        coarse = self._work.coarse if self._work is not None else None
+        if coarse is None:
+            return {}
+        return {"coarse_unknowns": coarse.size, "coarse_updates": coarse.updates, "coarse_rejected": coarse.rejected,
+                **{f"coarse_{k}_s": round(v, 3) for k, v in coarse.seconds.items()}}
 
     def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
             exact_below: float) -> tuple[bool, int]:
         """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
         (converged, iterations). Not converged also where A is found not to be positive definite (definite_cg.py;
         ``not_definite`` counts those; a NaN stops it the same way)."""
-        cg = self._device_work().cg
-        result = definite_cg(A, b, x, rtol, maxiter, M, workspace=cg)
+        work = self._device_work()
+        coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
+        result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
         total = result.iterations
         if result.converged and rtol > self.cg_tol and exact_below > 0.0 \
                 and float(np.max(np.abs(x.numpy()))) < exact_below:
-            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=cg)
+            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
             total += result.iterations
         self.not_definite += result.not_definite
         return result.converged, total
@@ -354,9 +392,11 @@ class LinearSolver:
         self._last_free = None
         self._last_cg = None
 
-    def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float) -> wp.array | None:
+    def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
+                  coarse_from_this: bool = True) -> wp.array | None:
         """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
-        left as it was; H is projected in place)."""
+        left as it was; H is projected in place). With ``coarse_from_this``, the first system of a load step that
+        converges makes the coarse inverse (coarse_space.py) for the systems after it."""
         key = (H.offsets.ptr, H.columns.ptr, H.row_counts.ptr if H.row_counts else 0, H.nrow)
         if self._fixed_blocks is None or self._fixed_blocks[0] != key:  # once per sparsity: the solver keeps its matrix
             self._fixed_blocks = (key, *fixed_blocks(H, self._fixed.numpy() > 0.5))
@@ -374,4 +414,9 @@ class LinearSolver:
             return None
         self._converged_iterations = self.last_iterations
         self._last_cg = (A, M)
+        if work.coarse is not None and coarse_from_this and not self._coarse_tried and (
+                not work.coarse.ready or self._steps_since_coarse >= COARSE_REFRESH_STEPS):
+            self._coarse_tried = True
+            if work.coarse.update(H):
+                self._steps_since_coarse = 0
         return wp.clone(work.x)  # the kept x is the next solve's

@@ -332,6 +332,7 @@ class NewtonSteps:
         """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result
         (``may_stall``: see there)."""
         ind = self._indenter_struct(poses, prev_poses)
+        self._linear.new_load_step()
         wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
         # first lag: the contact of the last converged state, where it was (with the previous poses), or that of
         # the warm start if its contact is about as deep (on a slide it is where the contact has moved to)

@@ -43,6 +43,9 @@ class SolverSettings:
     # set it with [physics] friction_lag_moves, whose description (config/scene.py) gives the measured trade-off
     friction_lag_moves: int = 4
     contact_quadrature_order: int | None = None  # None: 2 * degree
+    # the device CG's coarse level (coarse_space.py): aggregates of nodes in grid cells of about this size (mm), whose
+    # rigid-body modes are solved for directly; None: block-Jacobi alone
+    coarse_cell_mm: float | None = 3.0
     fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
     # inversion barrier (elasticity.py): acts where det F < barrier_det_f at the 4 check points of a tet, with
     # stiffness barrier_stiffness * mu; 0 turns it off. It keeps sharp tips, nu -> 0.5 and deep presses from

@@ -120,7 +120,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         method = settings.linear_solver
         if method == "auto":
             method = "cg" if self.device.is_cuda else "direct"
-        self._linear = LinearSolver(method, fixed_nodes, self.device)
+        self._linear = LinearSolver(method, fixed_nodes, self.device, node_positions_mm=self._node_positions.numpy(),
+                                    coarse_cell_mm=settings.coarse_cell_mm)
         self._fixed_nodes = fixed_nodes
 
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()

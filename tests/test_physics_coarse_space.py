@@ -1,0 +1,105 @@
+"""The device CG's coarse level (physics/coarse_space.py): its Galerkin operator against numpy, its inverse, and the
+two-level CG against scipy's solution and block-Jacobi's iteration count. On the CPU, and on a GPU where there is one
+(the device tool, not CI)."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import warp as wp
+
+from transtac_sim.physics.coarse_space import CoarseSpace, coarse_inverse
+from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
+from transtac_sim.physics.sparse_product import block_row_operator
+
+SHAPE = (24, 20, 4)
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])  # grid nodes along x, y, z (1 mm apart); the z = 0 layer is fixed
+
+
+def _grid_system():
+    """A vector Laplacian on a 3D grid of nodes (each node coupled to its 6 neighbours through a symmetric positive
+    definite 3x3 block) with the bottom layer fixed as the solver projects it (identity rows and columns): node
+    positions (mm), fixed mask, the 3x3-block matrix (scipy CSR, symmetric positive definite)."""
+    idx = np.arange(np.prod(SHAPE)).reshape(SHAPE)
+    positions = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij"), -1).reshape(-1, 3)
+    pairs = np.concatenate([np.stack([np.take(idx, range(0, SHAPE[a] - 1), axis=a).ravel(),
+                                      np.take(idx, range(1, SHAPE[a]), axis=a).ravel()], 1) for a in range(3)])
+    n = len(positions)
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    graph = graph + graph.T
+    laplacian = sp.diags(np.asarray(graph.sum(axis=1)).ravel()) - graph
+    coupling = np.array([[1.5, 0.2, 0.0], [0.2, 1.0, 0.1], [0.0, 0.1, 0.5]])
+    A = sp.kron(laplacian, coupling).tolil()
+    fixed = np.repeat((positions[:, 2] == 0.0)[:, None], 3, axis=1)
+    for k in np.flatnonzero(fixed.reshape(-1)):
+        A[k, :] = 0.0
+        A[:, k] = 0.0
+        A[k, k] = 1.0
+    return positions, fixed, A.tocsr()
+
+
+def _warp_bsr(A: sp.csr_matrix, device: str):
+    B = A.tobsr(blocksize=(3, 3))
+    B.sort_indices()
+    rows = np.repeat(np.arange(B.shape[0] // 3), np.diff(B.indptr))
+    return wp.sparse.bsr_from_triplets(B.shape[0] // 3, B.shape[0] // 3, wp.array(rows, dtype=int, device=device),
+                                       wp.array(B.indices, dtype=int, device=device),
+                                       wp.array(B.data, dtype=wp.mat33d, device=device))
+
+
+def _prolongation(coarse: CoarseSpace) -> sp.csr_matrix:
+    """P (3 nodes x 6 aggregates) from the coarse space's per-node blocks B_i."""
+    basis, aggregate = coarse.basis.numpy(), coarse.aggregate.numpy()
+    n = len(aggregate)
+    rows = np.repeat(np.arange(3 * n), 6)
+    cols = (6 * aggregate[:, None, None] + np.arange(6)[None, None, :]).repeat(3, axis=1).reshape(-1)
+    return sp.csr_matrix((basis.reshape(-1), (rows, cols)), shape=(3 * n, coarse.size))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_galerkin_operator_is_p_transpose_h_p_with_rigid_modes_and_free_masks(device: str):
+    positions, fixed, A = _grid_system()
+    coarse = CoarseSpace(positions, fixed, 3.0, device)
+    P = _prolongation(coarse)
+    np.testing.assert_allclose(coarse.galerkin(_warp_bsr(A, device)), (P.T @ A @ P).toarray(), rtol=1e-12, atol=1e-10)
+    # P's columns are the aggregates' translations and rotations w x c on the free components, 0 on the fixed ones
+    assert np.all(P.toarray()[fixed.reshape(-1)] == 0.0)
+    node = int(np.flatnonzero(~fixed[:, 0])[7])
+    a = int(coarse.aggregate.numpy()[node])
+    y = np.zeros(coarse.size)
+    y[6 * a:6 * a + 6] = [0.1, -0.2, 0.3, 0.01, 0.02, -0.03]
+    members = coarse.aggregate.numpy() == a
+    centroid = positions[members & ~fixed[:, 0]].mean(axis=0)
+    expected = y[6 * a:6 * a + 3] + np.cross(y[6 * a + 3:6 * a + 6], positions[node] - centroid)
+    np.testing.assert_allclose((P @ y).reshape(-1, 3)[node], expected, rtol=1e-12, atol=1e-14)
+
+
+def test_coarse_inverse_inverts_live_modes_and_refuses_an_indefinite_operator():
+    rng = np.random.default_rng(0)
+    M = rng.standard_normal((8, 8))
+    spd = M @ M.T + 8.0 * np.eye(8)
+    spd[3, :] = spd[:, 3] = 0.0  # a dead mode (nothing on it)
+    inverse = coarse_inverse(spd)
+    live = np.arange(8) != 3
+    np.testing.assert_allclose(inverse[np.ix_(live, live)] @ spd[np.ix_(live, live)], np.eye(7), atol=1e-12)
+    assert np.all(inverse[3] == 0.0) and np.all(inverse[:, 3] == 0.0)
+    assert coarse_inverse(np.diag([1.0, 2.0, -0.5, 1.0])) is None
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_two_level_cg_solves_to_scipys_solution_in_fewer_iterations_than_block_jacobi(device: str):
+    positions, fixed, A = _grid_system()
+    H = _warp_bsr(A, device)
+    b = np.random.default_rng(1).standard_normal(A.shape[0]) * ~fixed.reshape(-1)
+    coarse = CoarseSpace(positions, fixed, 3.0, device)
+    assert coarse.update(H) and coarse.ready
+    exact = spla.spsolve(A.tocsc(), b)
+    iterations = {}
+    for name, level in (("block-Jacobi", None), ("two-level", coarse)):
+        x = wp.zeros(len(positions), dtype=wp.vec3d, device=device)
+        result = definite_cg(block_row_operator(H), wp.array(b.reshape(-1, 3), dtype=wp.vec3d, device=device), x,
+                             1e-10, 2000, BlockJacobi(H), coarse=level)
+        assert result.converged and not result.not_definite
+        np.testing.assert_allclose(x.numpy().reshape(-1), exact, rtol=1e-6, atol=1e-8)
+        iterations[name] = result.iterations
+    assert iterations["two-level"] < 0.6 * iterations["block-Jacobi"], iterations

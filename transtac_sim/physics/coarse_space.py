@@ -1,0 +1,246 @@
+"""The coarse level of the device CG's two-level preconditioner: rigid-body modes of aggregates of nodes.
+
+Block-Jacobi alone (definite_cg.py) removes only what is local to a node; the slowly varying part of the error, which
+spans the whole gel, takes CG many iterations to spread (150-500 per Newton system on press_slide,
+BENCHMARKS.md ``fem_slide_iterations_gpu``). The coarse level solves for that part directly. The nodes are grouped
+into aggregates, the cells of a grid of about ``cell_mm`` over the gel's bounding box, and each aggregate a carries
+six coarse unknowns, a translation t_a and a small rotation w_a (mm, rad). The prolongation P maps them to the nodes:
+
+    (P y)_i = f_i o (t_a + w_a x c_i) = B_i y_a,      B_i = diag(f_i) [ I | -[c_i]x ]   (3 x 6),
+
+with a the aggregate of node i, c_i = X_i - (the centroid of a's free nodes) (mm), and f_i the node's free mask (0 on
+the bonded components, which stay 0). An aggregate with fewer than 4 free nodes, or whose free nodes lie near a line,
+keeps its translations only (its rotations are not independent there). The additive two-level preconditioner
+(Toselli & Widlund 2005, ch. 2) is
+
+    M r = D^-1 r + P A_c^-1 P^T r,      A_c = P^T H P (the Galerkin operator, m x m, m = 6 x aggregates),
+
+symmetric positive definite wherever D and A_c are. (P^T r)_a = sum over a's nodes of B_i^T r_i = (sum r_i,
+sum c_i x r_i). ``update`` forms A_c on the device (one thread per block row, its blocks' B_i^T H_ij B_j added
+atomically into a dense matrix) and inverts it on the host (Cholesky; LAPACK ``potrf``/``potri``): about 1,000
+unknowns on the default gel with cell_mm = 3. The CG applies it on the device (definite_cg.py, ``solve``): P^T r, then
+the inverse as a dense float32 product that also adds the coarse part of r . M r, (P^T r) . A_c^-1 P^T r; P A_c^-1 P^T r
+is added where the CG updates p. On press_slide (H100) a CG iteration costs 1.7x and a Newton system takes 0.43x the
+iterations: the CG 0.7x the time, the frames 1.22-1.30x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that carry nothing (an aggregate whose nodes are all
+fixed, rotations left out) are dropped from the inverse. Where A_c is not positive definite (H is not), ``update``
+keeps the last inverse: any positive definite A_c^-1 gives a positive definite M, and one made from an earlier
+Newton system of the same gel still captures its rigid motions.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import warp as wp
+from scipy.linalg import lapack
+from threadpoolctl import threadpool_limits
+
+mat36d = wp.types.matrix(shape=(3, 6), dtype=wp.float64)
+vec6d = wp.types.vector(length=6, dtype=wp.float64)
+
+#: an aggregate keeps its rotations where its free nodes' second moment about their centroid has its smallest
+#: eigenvalue above this fraction of its largest (nodes near a line have a rotation that moves none of them)
+ROTATION_SPREAD = 1.0e-3
+#: threads per group of the restriction (consecutive nodes of one aggregate) and per row of the coarse product (more
+#: than one warp per row: the coarse matrix has about 1,000 rows, too few warps of one row each to keep the memory busy)
+RESTRICT_THREADS = 32
+PRODUCT_THREADS = 128
+#: coarse modes whose Galerkin diagonal is below this fraction of the largest carry nothing and are dropped
+DEAD_MODE = 1.0e-12
+
+
+@wp.kernel(enable_backward=False)
+def _galerkin(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+              blocks: wp.array(dtype=wp.mat33d), basis: wp.array(dtype=mat36d), aggregate: wp.array(dtype=int),
+              coarse: wp.array2d(dtype=wp.float64)):
+    """coarse[6a:6a+6, 6b:6b+6] += B_i^T H_ij B_j over block row i's blocks (a, b the aggregates of i and j)."""
+    row = wp.tid()
+    begin = offsets[row]
+    end = offsets[row + 1]
+    if row_counts:
+        end = begin + row_counts[row]
+    left = wp.transpose(basis[row])
+    a = 6 * aggregate[row]
+    for k in range(begin, end):
+        col = columns[k]
+        product = left * (blocks[k] * basis[col])
+        b = 6 * aggregate[col]
+        for r in range(6):
+            for c in range(6):
+                wp.atomic_add(coarse, a + r, b + c, product[r, c])
+
+
+@wp.kernel(enable_backward=False)
+def _restrict(r: wp.array(dtype=wp.vec3d), basis: wp.array(dtype=mat36d), members: wp.array(dtype=int),
+              aggregate: wp.array(dtype=int), group_size: int, restricted: wp.array(dtype=wp.float64)):
+    """restricted[6a:6a+6] += B_i^T r_i over the nodes i in order of their aggregate a (``members``), ``group_size``
+    of them per thread group: a group's nodes mostly share the aggregate of its first (about 180 nodes per aggregate
+    on the default gel), whose part is added once (a tile sum); the others add their own. ``restricted`` must be 0
+    before (``_step_p`` clears it in the CG)."""
+    group, lane = wp.tid()
+    start = group * group_size
+    end = wp.min(start + group_size, members.shape[0])
+    first = aggregate[members[start]]
+    shared = vec6d()
+    for k in range(start + lane, end, wp.block_dim()):
+        i = members[k]
+        v = wp.transpose(basis[i]) * r[i]
+        a = aggregate[i]
+        if a == first:
+            shared += v
+        else:
+            for c in range(6):
+                wp.atomic_add(restricted, 6 * a + c, v[c])
+    total = wp.tile_sum(wp.tile(shared, preserve_type=True))
+    if lane == 0:
+        for c in range(6):
+            wp.atomic_add(restricted, 6 * first + c, total[0][c])
+
+
+@wp.kernel(enable_backward=False)
+def _coarse_product(inverse: wp.array2d(dtype=wp.float32), x: wp.array(dtype=wp.float64),
+                    y: wp.array(dtype=wp.float64), sums: wp.array(dtype=wp.float64), slot: int):
+    """y = inverse x, and x . y added to sums[slot]: one thread group per row, its lanes striding over the row
+    (coalesced), then a tile sum."""
+    row, lane = wp.tid()
+    partial = wp.float64(0.0)
+    for j in range(lane, x.shape[0], wp.block_dim()):
+        partial += wp.float64(inverse[row, j]) * x[j]
+    total = wp.tile_sum(wp.tile(partial))
+    if lane == 0:
+        y[row] = total[0]
+        wp.atomic_add(sums, slot, x[row] * total[0])
+
+
+@wp.func
+def prolong(basis: wp.array(dtype=mat36d), aggregate: wp.array(dtype=int), values: wp.array(dtype=wp.float64), i: int):
+    """(P y)_i = B_i y_a for the coarse values y (a node i's aggregate)."""
+    a = 6 * aggregate[i]
+    y = vec6d(values[a], values[a + 1], values[a + 2], values[a + 3], values[a + 4], values[a + 5])
+    return basis[i] * y
+
+
+def _bases(positions_mm: np.ndarray, fixed: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """(aggregate of each node, B_i of each node (n, 3, 6), aggregates): the grid cells of about ``cell_mm`` over the
+    nodes' bounding box (the same count of cells along an axis spans it evenly), larger where that would make more
+    than sqrt(nodes) cells (``_cell_counts``)."""
+    lo, hi = positions_mm.min(axis=0), positions_mm.max(axis=0)
+    cells = _cell_counts(hi - lo, cell_mm, len(positions_mm))
+    size = np.where(hi > lo, (hi - lo) / cells, 1.0)
+    index = np.minimum(np.floor((positions_mm - lo) / size).astype(int), cells - 1)
+    _, aggregate = np.unique((index[:, 0] * cells[1] + index[:, 1]) * cells[2] + index[:, 2], return_inverse=True)
+    aggregate = aggregate.reshape(-1)
+    count = int(aggregate.max()) + 1
+    free_node = ~fixed.all(axis=1)
+    members = np.bincount(aggregate[free_node], minlength=count)
+    centroid = np.zeros((count, 3))
+    np.add.at(centroid, aggregate[free_node], positions_mm[free_node])
+    centroid /= np.maximum(members, 1)[:, None]
+    c = positions_mm - centroid[aggregate]
+    moment = np.zeros((count, 3, 3))
+    np.add.at(moment, aggregate[free_node], c[free_node, :, None] * c[free_node, None, :])
+    spread = np.linalg.eigvalsh(moment)
+    rotations = (members >= 4) & (spread[:, 0] > ROTATION_SPREAD * np.maximum(spread[:, 2], 1e-300))
+    c = c * rotations[aggregate][:, None]
+    basis = np.zeros((len(c), 3, 6))
+    basis[:, :, :3] = np.eye(3)
+    x, y, z = c.T
+    zero = np.zeros_like(x)
+    basis[:, :, 3] = np.stack([zero, -z, y], axis=1)  # w = e_x: e_x x c
+    basis[:, :, 4] = np.stack([z, zero, -x], axis=1)  # e_y x c
+    basis[:, :, 5] = np.stack([-y, x, zero], axis=1)  # e_z x c
+    basis *= (~fixed)[:, :, None]
+    return aggregate, basis, count
+
+
+def _cell_counts(extent_mm: np.ndarray, cell_mm: float, nodes: int) -> np.ndarray:
+    """Cells along each axis: about ``cell_mm`` each, grown by 10 % steps until there are at most sqrt(nodes) of them.
+    The CG's dense coarse product costs (6 cells)^2 per iteration against about 250 nodes for its sparse product: at
+    sqrt(nodes) cells the coarse one is at most a sixth of it (the default gel: 176 cells of 3 mm for 31k P2 nodes)."""
+    while True:
+        cells = np.maximum(1, np.round(extent_mm / cell_mm)).astype(int)
+        if cells.prod() <= max(1.0, np.sqrt(nodes)):
+            return cells
+        cell_mm *= 1.1
+
+
+def coarse_inverse(galerkin: np.ndarray) -> np.ndarray | None:
+    """The inverse of the Galerkin operator (m x m, float64) over its live modes (0 on the dead ones, ``DEAD_MODE``),
+    or None where it is not positive definite."""
+    diagonal = np.diag(galerkin)
+    dead = np.abs(diagonal) <= DEAD_MODE * float(np.abs(diagonal).max())
+    a = galerkin.copy()
+    a[dead, :] = 0.0
+    a[:, dead] = 0.0
+    a[dead, dead] = 1.0
+    a = 0.5 * (a + a.T)
+    factor, info = lapack.dpotrf(a, lower=1, clean=1)
+    if info != 0:
+        return None
+    inverse, info = lapack.dpotri(factor, lower=1)
+    if info != 0:
+        return None
+    inverse = np.tril(inverse) + np.tril(inverse, -1).T
+    inverse[dead, :] = 0.0
+    inverse[:, dead] = 0.0
+    return inverse
+
+
+class CoarseSpace:
+    """The aggregates' rigid-body modes of a solver's nodes (``positions_mm`` (n, 3), ``fixed`` bool (n, 3)) on
+    ``device``, with the kept coarse inverse (``ready`` once ``update`` has made one) and the CG's coarse vectors.
+    Arrays keep their addresses between updates, so a CUDA graph captured with them stays valid."""
+
+    def __init__(self, positions_mm: np.ndarray, fixed: np.ndarray, cell_mm: float, device):
+        if not cell_mm > 0.0:
+            raise ValueError(f"coarse cell size must be > 0 mm, got {cell_mm}")
+        aggregate, basis, count = _bases(np.asarray(positions_mm, dtype=np.float64), np.asarray(fixed, bool), cell_mm)
+        self.device = device
+        self.size = 6 * count  # coarse unknowns
+        self.aggregate = wp.array(aggregate.astype(np.int32), dtype=int, device=device)
+        order = np.argsort(aggregate, kind="stable")  # the nodes of each aggregate, one after another
+        self._members = wp.array(order.astype(np.int32), dtype=int, device=device)
+        self.basis = wp.array(basis, dtype=mat36d, device=device)
+        self.inverse = wp.zeros((self.size, self.size), dtype=wp.float32, device=device)
+        self.restricted = wp.zeros(self.size, dtype=wp.float64, device=device)  # P^T r, summed atomically
+        self.values = wp.zeros(self.size, dtype=wp.float64, device=device)  # A_c^-1 P^T r
+        self._galerkin = wp.zeros((self.size, self.size), dtype=wp.float64, device=device)
+        self.ready = False
+        self.updates = 0  # coarse inverses made
+        self.rejected = 0  # Galerkin operators found not positive definite (the last inverse kept)
+        self.seconds = {"galerkin": 0.0, "inverse": 0.0}  # ``update``'s time: A_c on the device, its inverse on the host
+
+    def galerkin(self, H) -> np.ndarray:
+        """A_c = P^T H P (m x m, float64, on the host) for a 3x3-block BSR matrix H on the device."""
+        self._galerkin.zero_()
+        wp.launch(_galerkin, dim=H.nrow, device=self.device,
+                  inputs=[H.offsets, H.row_counts, H.columns, H.values, self.basis, self.aggregate, self._galerkin])
+        return self._galerkin.numpy()
+
+    def update(self, H) -> bool:
+        """Makes the coarse inverse from H's Galerkin operator; False (the last one kept) where that is not positive
+        definite."""
+        start = time.perf_counter()
+        galerkin = self.galerkin(H)
+        middle = time.perf_counter()
+        with threadpool_limits(limits=1, user_api="blas"):  # BLAS threads left spinning slow other workers (linear.py)
+            inverse = coarse_inverse(galerkin)
+        self.seconds["galerkin"] += middle - start
+        self.seconds["inverse"] += time.perf_counter() - middle
+        if inverse is None:
+            self.rejected += 1
+            return False
+        self.inverse.assign(inverse.astype(np.float32))
+        self.ready = True
+        self.updates += 1
+        return True
+
+    def solve(self, r: wp.array, sums: wp.array, slot: int) -> None:
+        """values = A_c^-1 P^T r, and (P^T r) . values (= r . P values, the coarse part of the CG's r . M r) added to
+        sums[slot]; graph-capturable (two launches)."""
+        groups = (len(self._members) + RESTRICT_THREADS - 1) // RESTRICT_THREADS
+        wp.launch_tiled(_restrict, dim=[groups], block_dim=RESTRICT_THREADS, device=self.device,
+                        inputs=[r, self.basis, self._members, self.aggregate, RESTRICT_THREADS, self.restricted])
+        wp.launch_tiled(_coarse_product, dim=[self.size], block_dim=PRODUCT_THREADS, device=self.device,
+                        inputs=[self.inverse, self.restricted, self.values, sums, slot])
