@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_md import machine_name, update_section  # noqa: E402
 
 from transtac_sim.dataset.sequence import StageClock  # noqa: E402
-from transtac_sim.physics import linear  # noqa: E402
+from transtac_sim.physics import device_linear  # noqa: E402
 from transtac_sim.physics.linear import LinearSolver  # noqa: E402
 from transtac_sim.scene_setup import load_setup  # noqa: E402
 from transtac_sim.simulation import simulate_frames  # noqa: E402
@@ -58,9 +58,9 @@ def record_systems(scene: Path, frames: int, device: str, every: int = 5, keep: 
         wp.synchronize_device()
         t0 = time.perf_counter()
         K = wp.sparse.bsr_copy(H)  # the solver projects H in place: keep a projected copy, as CG receives it
-        linear.project_fixed(K, self._fixed, linear.fixed_blocks(K, self._fixed.numpy() > 0.5))
+        device_linear.project_fixed(K, self._fixed, device_linear.fixed_blocks(K, self._fixed.numpy() > 0.5))
         b = wp.empty_like(rhs)
-        wp.launch(linear._free_part, dim=len(b), device=b.device, inputs=[rhs, self._fixed, b])
+        wp.launch(device_linear._free_part, dim=len(b), device=b.device, inputs=[rhs, self._fixed, b])
         wp.synchronize_device()
         merge_seconds.append(time.perf_counter() - t0)
         systems.append((K, b))

@@ -21,11 +21,11 @@ last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tigh
 residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--float64-cg-matrix``
 (the device CG's product on the float64 matrix, as before it read a float32 copy), ``--fresh-cg-graphs`` (each device
 CG solve makes its own work vectors, state and graph, as before commit 31c75b7; x, the block-Jacobi inverses and the
-float32 blocks stay kept, physics/linear.py), ``--warp-cg``
+float32 blocks stay kept, physics/device_linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py).
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
-(linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
+(device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
 ``--warm-start``, ``--exact-below``, ``--lag-move-ratio`` and ``--friction-lag-moves`` are the Newton variants of
 scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
@@ -50,7 +50,7 @@ import warp as wp
 from warp.optim.linear import aslinearoperator, cg
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import QuasiStaticSolver, linear, newton, sparse_product
+from transtac_sim.physics import QuasiStaticSolver, device_linear, newton, sparse_product
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
@@ -140,28 +140,28 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          coarse_cell_mm: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
-         coarse_refresh_steps: int = typer.Option(linear.COARSE_REFRESH_STEPS, min=1,
-                                                  help="linear.COARSE_REFRESH_STEPS"),
+         coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
+                                                  help="device_linear.COARSE_REFRESH_STEPS"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
-    linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
+    device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
     solver_variants.apply(warm_start, exact_below, lag_move_ratio)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
     if warp_spmv:
-        linear.block_row_operator = lambda H, single_precision=False, rounded=None: aslinearoperator(H)
+        device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: aslinearoperator(H)
     if float64_cg_matrix:
-        float64_operator = linear.block_row_operator
-        linear.block_row_operator = lambda H, single_precision=False, rounded=None: float64_operator(H)
+        float64_operator = device_linear.block_row_operator
+        device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: float64_operator(H)
     if warp_cg:
-        linear.definite_cg = _warp_cg
+        device_linear.definite_cg = _warp_cg
     if fresh_cg_graphs:
-        kept_cg = linear.definite_cg
-        linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
+        kept_cg = device_linear.definite_cg
+        device_linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
     if spmv_lanes is not None:
         sparse_product.LANES = spmv_lanes
     if cg_tol is not None:

@@ -29,7 +29,7 @@ import numpy as np
 import typer
 
 from transtac_sim.config import load_scene
-from transtac_sim.physics import QuasiStaticSolver, linear
+from transtac_sim.physics import QuasiStaticSolver, device_linear, linear
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
 
 HESSIANS = {(1.0, EXACT): "exact", (1.0, CLAMPED): "clamped", (0.0, CLAMPED): "Gauss-Newton"}
@@ -78,7 +78,7 @@ def _trace_solver() -> None:
     """Prints, as they happen: each frame, each load sub-step, each device CG that stopped without converging (why,
     after how many iterations) and each host (direct) solve with its seconds."""
     solve_frame, solve_step = QuasiStaticSolver.solve_frame, QuasiStaticSolver._solve_step
-    cg, solve_direct = linear.definite_cg, linear.LinearSolver._solve_direct
+    cg, solve_direct = device_linear.definite_cg, linear.LinearSolver._solve_direct
 
     def logged(self, poses):
         t0 = time.perf_counter()
@@ -113,7 +113,7 @@ def _trace_solver() -> None:
 
     QuasiStaticSolver.solve_frame = logged
     QuasiStaticSolver._solve_step = logged_step
-    linear.definite_cg = logged_cg
+    device_linear.definite_cg = logged_cg
     linear.LinearSolver._solve_direct = logged_direct
 
 

@@ -21,8 +21,9 @@ from transtac_sim.physics import (
     elasticity,
 )
 from transtac_sim.physics.box_mesh import gel_block
+from transtac_sim.physics.device_linear import SHIFTS, fixed_blocks, project_fixed
 from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
-from transtac_sim.physics.linear import SHIFTS, LinearSolver, fixed_blocks, project_fixed
+from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 

@@ -12,7 +12,7 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), max |u - u_lag| for
   friction's lag test is reduced there (``_max_difference``), and so are the contact Hessian's stiff points (with the
-  fixed dofs' projection on the blocks it changes only, linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster
+  fixed dofs' projection on the blocks it changes only, device_linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster
   in three of four runs, then 0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``);
 - contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``), its Hessian
   only over those where it can be non-zero (contact_sides.py).

@@ -222,7 +222,7 @@ class NewtonSteps:
         non-positive curvature (definite_cg.py). The clamped one is not always: the device CG found it not positive
         definite on train_random sequences 9 (flat punch) and 17 (cube edge) on an H100 (cause not traced; in uniform
         compression with the barrier acting it is, tests/test_physics_barrier.py). The last is solved whatever it is: on
-        the host by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (linear.py)."""
+        the host by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (device_linear.py)."""
         return ((1.0, EXACT), (1.0, CLAMPED), (0.0, CLAMPED))
 
     def _move_lag(self, ind, remaining: float) -> bool:

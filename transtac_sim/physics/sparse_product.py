@@ -1,6 +1,6 @@
 """The Newton systems' matrix-vector product on the device: z = alpha A x + beta y for a 3x3-block CSR matrix.
 
-The device CG (linear.py) spends most of its time in this product: on the press-and-slide Hessian (97k dofs, about
+The device CG (device_linear.py) spends most of its time in this product: on the press-and-slide Hessian (97k dofs, about
 1.1M blocks of 3x3 float64, 80 MB) ``warp.sparse.bsr_mv`` took 123 us per call on an H100
 (``scripts/fem_phase_profile.py --gpu-activity``, BENCHMARKS.md ``fem_spmv_gpu``), several times what reading the
 blocks once costs. Warp's kernel gives each thread one scalar row and walks its blocks: neighbouring threads read
@@ -13,7 +13,7 @@ from ``bsr_mv`` by round-off). The stride is ``wp.block_dim()``, not ``LANES``: 
 fewer threads.
 
 With ``single_precision`` the product reads a copy of the blocks rounded to float32 (40 instead of 80 MB per product
-on press_slide) and does its arithmetic in float64: the device CG's matrix (linear.py). The rounding perturbs each
+on press_slide) and does its arithmetic in float64: the device CG's matrix (device_linear.py). The rounding perturbs each
 entry by at most 2^-24 of itself, and CG then solves the rounded system: its float64 relative residual can exceed
 the tolerance by up to about the condition number times 2^-24. That changes Newton's step, not its solution, which
 the float64 gradient decides; on press_slide the frames' markers agree with the float64 matrix's within the spread

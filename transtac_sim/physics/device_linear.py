@@ -1,0 +1,233 @@
+"""The device path of the Newton steps' linear solves (linear.py ``LinearSolver`` with ``method="cg"``):
+conjugate gradients on the solver's device (the GPU path), preconditioned with block-Jacobi plus a coarse
+correction on rigid-body modes of aggregates of nodes (coarse_space.py; its inverse made from the first converged
+system and again every ``COARSE_REFRESH_STEPS`` load steps; press_slide on an H100: 0.43x the CG iterations, 0.69x
+the CG's time, BENCHMARKS.md ``fem_coarse_level_gpu``), stopping
+where the matrix is found not to be positive definite (definite_cg.py; ``solve(..., definite=True)`` then
+returns None), its matrix-vector product one warp per block row on the matrix rounded to float32 (sparse_product.py:
+half the bytes of the product that is most of CG's time); the fixed rows/columns are
+projected out in place (``_project_fixed_blocks``, on the blocks it changes). Its relative tolerance is Newton's
+forcing term (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both
+paths) is a relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is
+below newton_tol_mm, and on
+press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
+forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
+a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
+a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where the last Hessian Newton tries
+(``definite=False``) is not solved either (CG stops at non-positive curvature or at ``cg_maxiter``), the system is
+shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a scaled gradient step, always a
+descent direction), and solved again on the device; ``shifted_solves`` counts them and ``last_shift`` tells Newton
+that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
+10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
+within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
+``fem_device_last_resort_gpu``). The last converged system's float32 matrix and
+preconditioner are kept for ``solve_last`` (in ``DeviceWork``, with the CG's arrays and graph). Warp's FSAI halves
+CG's iterations too, but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) is made per system and costs
+more than it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from warp.optim.linear import LinearOperator
+from warp.sparse import BsrMatrix
+
+from transtac_sim.physics.coarse_space import CoarseSpace
+from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
+from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
+
+
+@wp.kernel(enable_backward=False)
+def _project_fixed_blocks(touched: wp.array(dtype=int), rows: wp.array(dtype=int), columns: wp.array(dtype=int),
+                          blocks: wp.array(dtype=wp.mat33d), fixed: wp.array(dtype=wp.vec3d)):
+    """H <- (I - P) H (I - P) + P in place, P the diagonal 0/1 mask of the fixed components, on the blocks ``touched``
+    (in block rows ``rows``): those whose row or column has a fixed component (``fixed_blocks``), the only ones the
+    projection changes. What ``warp.fem.project_linear_system`` computes with two sparse matrix products and three
+    copies."""
+    t = wp.tid()
+    k = touched[t]
+    row = rows[t]
+    col = columns[k]
+    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    block = wp.diag(one - fixed[row]) * blocks[k] * wp.diag(one - fixed[col])
+    if col == row:
+        block += wp.diag(fixed[row])
+    blocks[k] = block
+
+
+def fixed_blocks(H: BsrMatrix, fixed: np.ndarray) -> tuple[wp.array, wp.array]:
+    """(block indices, their block rows) of the blocks of H whose row or column node has a fixed component (``fixed``:
+    bool, (nodes, 3)), on H's device: what ``_project_fixed_blocks`` changes (the bonded face's rows and columns; one
+    thread per block row over every block took 309 us per call on press_slide on an H100, BENCHMARKS.md
+    ``fem_slide_iterations_gpu``)."""
+    offsets = H.offsets.numpy()
+    counts = H.row_counts.numpy() if H.row_counts else np.diff(offsets)
+    rows = np.repeat(np.arange(H.nrow), counts)
+    k = np.repeat(offsets[:-1] - (np.cumsum(counts) - counts), counts) + np.arange(len(rows))  # skips unused slots
+    node_fixed = fixed.any(axis=1)
+    hit = node_fixed[rows] | node_fixed[H.columns.numpy()[k]]
+    return (wp.array(k[hit].astype(np.int32), dtype=int, device=H.device),
+            wp.array(rows[hit].astype(np.int32), dtype=int, device=H.device))
+
+
+def project_fixed(H: BsrMatrix, fixed: wp.array, blocks: tuple[wp.array, wp.array]) -> None:
+    """H <- (I - P) H (I - P) + P in place (``_project_fixed_blocks``), P = diag(``fixed``: 1.0 where fixed, vec3d per
+    node), on the ``blocks`` of ``fixed_blocks``."""
+    wp.launch(_project_fixed_blocks, dim=len(blocks[0]), device=H.device, inputs=[*blocks, H.columns, H.values, fixed])
+
+
+@wp.kernel(enable_backward=False)
+def _add_to_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                     blocks: wp.array(dtype=wp.mat33d), d: wp.array(dtype=wp.vec3d), delta: wp.float64):
+    """Each diagonal block B += delta diag(d[row]), in place (one thread per block row)."""
+    row = wp.tid()
+    k = diagonal_block(offsets, row_counts, columns, row)
+    if k >= 0:
+        blocks[k] = blocks[k] + delta * wp.diag(d[row])
+
+
+@wp.kernel(enable_backward=False)
+def _diagonal_magnitudes(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                         blocks: wp.array(dtype=wp.mat33d), d: wp.array(dtype=wp.vec3d)):
+    """d[row] = |diagonal| of the row's diagonal block (0 where it has none)."""
+    row = wp.tid()
+    k = diagonal_block(offsets, row_counts, columns, row)
+    d[row] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if k >= 0:
+        B = blocks[k]
+        d[row] = wp.vec3d(wp.abs(B[0, 0]), wp.abs(B[1, 1]), wp.abs(B[2, 2]))
+
+
+@wp.kernel(enable_backward=False)
+def _free_part(v: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
+    """(I - P) v: v with its fixed components set to 0."""
+    i = wp.tid()
+    f = fixed[i]
+    out[i] = wp.cw_mul(v[i], wp.vec3d(wp.float64(1.0) - f[0], wp.float64(1.0) - f[1], wp.float64(1.0) - f[2]))
+
+
+#: lambda of the device's last resort, H + lambda |diag(H)|, tried in turn; at 100 the block-Jacobi-preconditioned
+#: system is close to the identity and CG converges in a few iterations
+SHIFTS = (1.0e-2, 1.0, 1.0e2)
+
+
+#: the device CG's coarse inverse (coarse_space.py) is made from the first converged system of the solver, then again
+#: every this many load steps: making it (the Galerkin operator's atomic sums on the device, a Cholesky inverse of about
+#: 1,000 unknowns on the host) costs about as much as a few CG solves, and one made a few frames earlier serves nearly as
+#: well
+COARSE_REFRESH_STEPS = 10
+
+
+@dataclass
+class DeviceWork:
+    """What the device path keeps between solves, so that each solve finds the arrays of the last and its CG can launch
+    the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses, the matrix's float32
+    blocks (grown to the largest matrix) and the coarse level of the two-level preconditioner (None: block-Jacobi
+    alone)."""
+
+    cg: CgWorkspace
+    x: wp.array
+    inverse: wp.array
+    rounded: wp.array
+    coarse: CoarseSpace | None
+
+
+class DeviceSolves:
+    """The device path's methods of ``LinearSolver`` (linear.py; which provides the fields they use: the fixed mask,
+    tolerances, counters and the kept ``DeviceWork``)."""
+
+    def _solve_shifted(self, H: BsrMatrix, rhs: wp.array, rtol: float) -> wp.array | None:
+        """H + lambda |diag(H)| solved by the device CG for lambda in ``SHIFTS`` in turn (H, already projected, is
+        changed in place), the first that converges; None if none does. Not kept for ``solve_last``: it is not the
+        Hessian."""
+        structure = [H.offsets, H.row_counts, H.columns, H.values]
+        d = wp.empty(H.nrow, dtype=wp.vec3d, device=self.device)
+        wp.launch(_diagonal_magnitudes, dim=H.nrow, device=self.device, inputs=[*structure, d])
+        before = 0.0
+        for lam in SHIFTS:
+            wp.launch(_add_to_diagonal, dim=H.nrow, device=self.device,
+                      inputs=[*structure, d, wp.float64(lam - before)])
+            before = lam
+            x = self._solve_cg(H, rhs, rtol, 0.0, coarse_from_this=False)
+            if x is not None:
+                self.shifted_solves += 1
+                self.last_shift = lam
+                self.forget()
+                return x
+        return None
+
+    def _solve_last_cg(self, rhs: np.ndarray, rtol: float, exact_below: float) -> np.ndarray | None:
+        if self._last_cg is None:
+            return None
+        A, M = self._last_cg
+        b = wp.array(np.asarray(rhs).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+        x = self._device_work().x
+        x.zero_()
+        converged, _ = self._cg(A, M, b, x, rtol, max(50, self._converged_iterations), exact_below)
+        return x.numpy() if converged else None
+
+    def _device_work(self) -> DeviceWork:
+        """The device path's arrays kept between solves (made on first use)."""
+        if self._work is None:
+            coarse = CoarseSpace(*self._coarse_setup, self.device) if self._coarse_setup is not None else None
+            self._work = DeviceWork(CgWorkspace(self._node_count, self.device),
+                                    wp.empty(self._node_count, dtype=wp.vec3d, device=self.device),
+                                    wp.empty(self._node_count, dtype=wp.mat33d, device=self.device),
+                                    wp.empty(0, dtype=wp.mat33f, device=self.device), coarse)
+        return self._work
+
+    def coarse_stats(self) -> dict[str, int]:
+        """The coarse level's size and how often its inverse was made or refused (empty without one)."""
+        coarse = self._work.coarse if self._work is not None else None
+        if coarse is None:
+            return {}
+        return {"coarse_unknowns": coarse.size, "coarse_updates": coarse.updates, "coarse_rejected": coarse.rejected,
+                **{f"coarse_{k}_s": round(v, 3) for k, v in coarse.seconds.items()}}
+
+    def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
+            exact_below: float) -> tuple[bool, int]:
+        """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
+        (converged, iterations). Not converged also where A is found not to be positive definite (definite_cg.py;
+        ``not_definite`` counts those; a NaN stops it the same way)."""
+        work = self._device_work()
+        coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
+        result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
+        total = result.iterations
+        if result.converged and rtol > self.cg_tol and exact_below > 0.0 \
+                and float(np.max(np.abs(x.numpy()))) < exact_below:
+            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
+            total += result.iterations
+        self.not_definite += result.not_definite
+        return result.converged, total
+
+    def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
+                  coarse_from_this: bool = True) -> wp.array | None:
+        """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
+        left as it was; H is projected in place). With ``coarse_from_this``, the first system of a load step that
+        converges makes the coarse inverse (coarse_space.py) for the systems after it."""
+        key = (H.offsets.ptr, H.columns.ptr, H.row_counts.ptr if H.row_counts else 0, H.nrow)
+        if self._fixed_blocks is None or self._fixed_blocks[0] != key:  # once per sparsity: the solver keeps its matrix
+            self._fixed_blocks = (key, *fixed_blocks(H, self._fixed.numpy() > 0.5))
+        project_fixed(H, self._fixed, self._fixed_blocks[1:])
+        b = wp.empty_like(rhs)
+        wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
+        work = self._device_work()
+        if len(work.rounded) < len(H.values):  # the float32 blocks' buffer, grown to the matrix's capacity
+            work.rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=self.device)
+        A = block_row_operator(H, single_precision=True, rounded=work.rounded)
+        M = BlockJacobi(H, inverse=work.inverse)
+        work.x.zero_()
+        converged, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)
+        if not converged:
+            return None
+        self._converged_iterations = self.last_iterations
+        self._last_cg = (A, M)
+        if work.coarse is not None and coarse_from_this and not self._coarse_tried and (
+                not work.coarse.ready or self._steps_since_coarse >= COARSE_REFRESH_STEPS):
+            self._coarse_tried = True
+            if work.coarse.update(H):
+                self._steps_since_coarse = 0
+        return wp.clone(work.x)  # the kept x is the next solve's
