@@ -16,14 +16,14 @@ SHAPE = (24, 20, 4)
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])  # grid nodes along x, y, z (1 mm apart); the z = 0 layer is fixed
 
 
-def _grid_system():
+def _grid_system(shape: tuple[int, int, int] = SHAPE):
     """A vector Laplacian on a 3D grid of nodes (each node coupled to its 6 neighbours through a symmetric positive
     definite 3x3 block) with the bottom layer fixed as the solver projects it (identity rows and columns): node
     positions (mm), fixed mask, the 3x3-block matrix (scipy CSR, symmetric positive definite)."""
-    idx = np.arange(np.prod(SHAPE)).reshape(SHAPE)
-    positions = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij"), -1).reshape(-1, 3)
-    pairs = np.concatenate([np.stack([np.take(idx, range(0, SHAPE[a] - 1), axis=a).ravel(),
-                                      np.take(idx, range(1, SHAPE[a]), axis=a).ravel()], 1) for a in range(3)])
+    idx = np.arange(np.prod(shape)).reshape(shape)
+    positions = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    pairs = np.concatenate([np.stack([np.take(idx, range(0, shape[a] - 1), axis=a).ravel(),
+                                      np.take(idx, range(1, shape[a]), axis=a).ravel()], 1) for a in range(3)])
     n = len(positions)
     graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     graph = graph + graph.T
@@ -103,3 +103,18 @@ def test_two_level_cg_solves_to_scipys_solution_in_fewer_iterations_than_block_j
         np.testing.assert_allclose(x.numpy().reshape(-1), exact, rtol=1e-6, atol=1e-8)
         iterations[name] = result.iterations
     assert iterations["two-level"] < 0.6 * iterations["block-Jacobi"], iterations
+
+
+def test_two_level_cg_where_the_coarse_level_has_more_unknowns_than_the_mesh_has_nodes():
+    """A 2 x 2 x 4 grid: 16 nodes, 3 aggregates, 18 coarse unknowns (the CG clears P^T r node by node, and here
+    not one entry per node)."""
+    positions, fixed, A = _grid_system((2, 2, 4))
+    H = _warp_bsr(A, "cpu")
+    coarse = CoarseSpace(positions, fixed, 1.0, "cpu")
+    assert coarse.update(H) and coarse.size > len(positions)
+    b = np.random.default_rng(2).standard_normal(A.shape[0]) * ~fixed.reshape(-1)
+    x = wp.zeros(len(positions), dtype=wp.vec3d)
+    result = definite_cg(block_row_operator(H), wp.array(b.reshape(-1, 3), dtype=wp.vec3d), x, 1e-12, 200,
+                         BlockJacobi(H), coarse=coarse)
+    assert result.converged and not result.not_definite
+    np.testing.assert_allclose(x.numpy().reshape(-1), spla.spsolve(A.tocsc(), b), rtol=1e-8, atol=1e-10)

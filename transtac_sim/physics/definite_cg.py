@@ -155,8 +155,8 @@ def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: w
     zi = z[i]
     if values.shape[0] > 0:
         zi = zi + prolong(basis, aggregate, values, i)
-        if i < restricted.shape[0]:
-            restricted[i] = wp.float64(0.0)
+        for k in range(i, restricted.shape[0], p.shape[0]):  # one entry per thread where there are more nodes
+            restricted[k] = wp.float64(0.0)
     if first != 0:
         p[i] = zi
     elif state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0) and state[RZ_NEW] > wp.float64(0.0):
