@@ -12,8 +12,8 @@ from transtac_sim.physics.coarse_space import CoarseSpace, coarse_inverse
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
 
-SHAPE = (24, 20, 4)
-DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])  # grid nodes along x, y, z (1 mm apart); the z = 0 layer is fixed
+SHAPE = (24, 20, 4)  # grid nodes along x, y, z (1 mm apart); the z = 0 layer is fixed
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
 
 def _grid_system(shape: tuple[int, int, int] = SHAPE):

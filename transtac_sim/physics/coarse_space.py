@@ -21,8 +21,8 @@ atomically into a dense matrix) and inverts it on the host (Cholesky; LAPACK ``p
 unknowns on the default gel with cell_mm = 3. The CG applies it on the device (definite_cg.py, ``solve``): P^T r, then
 the inverse as a dense float32 product that also adds the coarse part of r . M r, (P^T r) . A_c^-1 P^T r; P A_c^-1 P^T r
 is added where the CG updates p. On press_slide (H100) a CG iteration costs 1.7x and a Newton system takes 0.43x the
-iterations: the CG 0.7x the time, the frames 1.22-1.35x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that carry nothing (an aggregate whose nodes are all
-fixed, rotations left out) are dropped from the inverse. Where A_c is not positive definite (H is not), ``update``
+iterations: the CG 0.7x the time, the frames 1.22-1.35x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that
+carry nothing (an aggregate whose nodes are all fixed, rotations left out) are dropped from the inverse. Where A_c is not positive definite (H is not), ``update``
 keeps the last inverse: any positive definite A_c^-1 gives a positive definite M, and one made from an earlier
 Newton system of the same gel still captures its rigid motions.
 """
