@@ -36,6 +36,8 @@ import warp as wp
 from scipy.linalg import lapack
 from threadpoolctl import threadpool_limits
 
+from transtac_sim.physics.sparse_product import block_row_range
+
 mat36d = wp.types.matrix(shape=(3, 6), dtype=wp.float64)
 vec6d = wp.types.vector(length=6, dtype=wp.float64)
 
@@ -56,13 +58,10 @@ def _galerkin(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), col
               coarse: wp.array2d(dtype=wp.float64)):
     """coarse[6a:6a+6, 6b:6b+6] += B_i^T H_ij B_j over block row i's blocks (a, b the aggregates of i and j)."""
     row = wp.tid()
-    begin = offsets[row]
-    end = offsets[row + 1]
-    if row_counts:
-        end = begin + row_counts[row]
+    blocks_of_row = block_row_range(offsets, row_counts, row)
     left = wp.transpose(basis[row])
     a = 6 * aggregate[row]
-    for k in range(begin, end):
+    for k in range(blocks_of_row[0], blocks_of_row[1]):
         col = columns[k]
         product = left * (blocks[k] * basis[col])
         b = 6 * aggregate[col]

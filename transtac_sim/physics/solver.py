@@ -120,8 +120,10 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         method = settings.linear_solver
         if method == "auto":
             method = "cg" if self.device.is_cuda else "direct"
-        self._linear = LinearSolver(method, fixed_nodes, self.device, node_positions_mm=self._node_positions.numpy(),
-                                    coarse_cell_mm=settings.coarse_cell_mm)
+        coarse = method == "cg" and settings.coarse_cell_mm is not None  # the device CG's coarse level only
+        self._linear = LinearSolver(method, fixed_nodes, self.device,
+                                    node_positions_mm=self._node_positions.numpy() if coarse else None,
+                                    coarse_cell_mm=settings.coarse_cell_mm if coarse else None)
         self._fixed_nodes = fixed_nodes
 
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
