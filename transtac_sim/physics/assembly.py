@@ -10,8 +10,9 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   deviatoric part's sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point
   per tet) is added to it tet by tet (volumetric_hessian.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
-- host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), max |u - u_lag| for
-  friction's lag test is reduced there (``_max_difference``), and so are the contact Hessian's stiff points (with the
+- host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the
+  largest penetration and max |u - u_lag| for friction's lag test are reduced there (reductions.py), and so are the
+  contact Hessian's stiff points (with the
   fixed dofs' projection on the blocks it changes only, device_linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster
   in three of four runs, then 0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``);
 - contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``), its Hessian
@@ -29,6 +30,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
 from transtac_sim.physics.definite_cg import add_dot
+from transtac_sim.physics.reductions import extremes, negated_free
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
@@ -38,22 +40,6 @@ def _add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), tot
     """total[slots[k]] += part[k]: a part's blocks added at their places in the sum (each place once per part)."""
     k = wp.tid()
     total[slots[k]] = total[slots[k]] + part[k]
-
-
-REDUCTION_THREADS = 256  # one thread block strides over the vector: no atomics, the same result on every run
-
-
-@wp.kernel(enable_backward=False)
-def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
-    """out[0] = max over entries and components of |a - b| (one thread block)."""
-    _, lane = wp.tid()
-    largest = wp.float64(0.0)
-    for i in range(lane, a.shape[0], wp.block_dim()):
-        d = a[i] - b[i]
-        largest = wp.max(largest, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
-    total = wp.tile_max(wp.tile(largest))
-    if lane == 0:
-        out[0] = total[0]
 
 
 @wp.kernel(enable_backward=False)
@@ -256,26 +242,20 @@ class Assembly:
         return slots
 
     def _free_norm(self, g: wp.array) -> float:
-        a = g.numpy()
-        a[self._fixed_nodes] = 0.0
-        return float(np.linalg.norm(a))
-
-    def _max_difference(self, a: wp.array, b: wp.array) -> float:
-        """max |a - b| over the entries and components of two vec3d arrays (mm), reduced on the device."""
-        out = wp.empty(1, dtype=wp.float64, device=self.device)
-        wp.launch_tiled(_max_abs_difference, dim=[1], block_dim=REDUCTION_THREADS, device=self.device,
-                        inputs=[a, b, out])
-        return float(out.numpy()[0])
+        """|g| over the free components (N)."""
+        return negated_free(g, self._fixed_mask)[1]
 
     def _min_det(self, u) -> float:
+        """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN)."""
         J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
         fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
-        return float(np.min(J.numpy()))
+        return extremes(J)[0]
 
     def _max_penetration(self, ind) -> float:
+        """The largest penetration (mm) at the contact quadrature points."""
         if not ind.count:
             return 0.0
         pen = wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device)
         fem.interpolate(contact.penetration_form, dest=pen, at=self._q_contact, fields={"u": self.u.trace()},
                         values={"ind": ind})
-        return float(np.max(pen.numpy()))
+        return extremes(pen)[1]

@@ -37,6 +37,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
+from transtac_sim.physics.reductions import max_abs
 from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
 
 
@@ -159,15 +160,14 @@ class DeviceSolves:
                 return x
         return None
 
-    def _solve_last_cg(self, rhs: np.ndarray, rtol: float, exact_below: float) -> np.ndarray | None:
+    def _solve_last_cg(self, rhs: wp.array, rtol: float, exact_below: float) -> wp.array | None:
         if self._last_cg is None:
             return None
         A, M = self._last_cg
-        b = wp.array(np.asarray(rhs).reshape(-1, 3), dtype=wp.vec3d, device=self.device)
         x = self._device_work().x
         x.zero_()
-        converged, _ = self._cg(A, M, b, x, rtol, max(50, self._converged_iterations), exact_below)
-        return x.numpy() if converged else None
+        converged, _ = self._cg(A, M, rhs, x, rtol, max(50, self._converged_iterations), exact_below)
+        return wp.clone(x) if converged else None  # the kept x is the next solve's
 
     def _device_work(self) -> DeviceWork:
         """The device path's arrays kept between solves (made on first use)."""
@@ -196,8 +196,7 @@ class DeviceSolves:
         coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
         result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
         total = result.iterations
-        if result.converged and rtol > self.cg_tol and exact_below > 0.0 \
-                and float(np.max(np.abs(x.numpy()))) < exact_below:
+        if result.converged and rtol > self.cg_tol and exact_below > 0.0 and max_abs(x) < exact_below:
             result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
             total += result.iterations
         self.not_definite += result.not_definite

@@ -83,7 +83,7 @@ class LinearSolver(DeviceSolves):
         self._steps_since_coarse += 1
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
-              rtol: float | None = None, exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
+              rtol: float | None = None, exact_below: float = 0.0, guess: wp.array | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device). ``H`` is changed: its fixed rows and columns are projected out
         in place (the caller assembles it anew for each system, assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
@@ -91,7 +91,7 @@ class LinearSolver(DeviceSolves):
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
-        ``guess`` (nodes, 3): where the direct path's PCG starts (Newton's step estimate for the same right-hand
+        ``guess`` (vec3d per node): where the direct path's PCG starts (Newton's step estimate for the same right-hand
         side; the device CG starts from 0). Without ``definite``, a system the device CG does not solve is shifted
         (``_solve_shifted``)."""
         self.forget()
@@ -104,7 +104,7 @@ class LinearSolver(DeviceSolves):
         return self._solve_shifted(H, rhs, rtol or self.cg_tol)
 
     def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False, rtol: float = 0.0,
-                      exact_below: float = 0.0, guess: np.ndarray | None = None) -> wp.array | None:
+                      exact_below: float = 0.0, guess: wp.array | None = None) -> wp.array | None:
         """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,
         scipy's, CHOLMOD's) spin-wait against each other and the next Warp kernel on few cores; on the 2-core CPU
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
@@ -122,7 +122,7 @@ class LinearSolver(DeviceSolves):
             self._factor_threads = min(lib["num_threads"] for lib in self._blas.select(user_api="blas").info())
         with self._blas.limit(limits=1, user_api="blas"):
             x_free = self._solve_free(A, b, definite, rtol, exact_below,
-                                      None if guess is None else guess.reshape(-1)[self._free])
+                                      None if guess is None else guess.numpy().reshape(-1)[self._free])
         if x_free is None:
             return None
         self._last_free = A
@@ -179,26 +179,26 @@ class LinearSolver(DeviceSolves):
             iterations += more
         return x, iterations
 
-    def solve_last(self, rhs: np.ndarray, rtol: float = 1.0e-3, exact_below: float = 0.0) -> np.ndarray | None:
-        """The last system's matrix solved for another right-hand side ``rhs`` (nodes, 3; 0 on the fixed
-        components), without assembly or factorisation: by CG preconditioned with the kept factorisation (direct
+    def solve_last(self, rhs: wp.array, rtol: float = 1.0e-3, exact_below: float = 0.0) -> wp.array | None:
+        """The last system's matrix solved for another right-hand side ``rhs`` (vec3d per node, on the device; 0 on the
+        fixed components), without assembly or factorisation: by CG preconditioned with the kept factorisation (direct
         path: to ``ESTIMATE_RTOL``, then on to ``rtol`` where the solution is below ``exact_below`` mm) or with the
         kept block-Jacobi preconditioner on the device (CG path: to ``rtol``, then on to ``cg_tol`` where the solution
         is below ``exact_below`` mm), because an early-stopped CG solution is shorter than the exact one and the caller
-        tests convergence on it. (nodes, 3) with 0 on the fixed components, or None (no system yet, or no
-        convergence within the iterations allowed)."""
+        tests convergence on it. A new array on the device with 0 on the fixed components, or None (no system yet, or
+        no convergence within the iterations allowed)."""
         if self.method == "cg":
             return self._solve_last_cg(rhs, rtol, exact_below)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:
             return None
-        b = rhs.reshape(-1)[self._free]
+        b = rhs.numpy().reshape(-1)[self._free]
         with self._blas.limit(limits=1, user_api="blas"):
             x, _ = self._kept_pcg(self._last_free, b, max(rtol, ESTIMATE_RTOL), rtol, exact_below)
         if x is None:
             return None
         out = np.zeros(3 * self._node_count)
         out[self._free] = x
-        return out.reshape(-1, 3)
+        return wp.array(out.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
 
     def forget(self) -> None:
         """The next ``solve_last`` returns None until a new system is solved (e.g. the energy has changed)."""

@@ -62,6 +62,7 @@ import warp.fem as fem
 from scipy.spatial.transform import Rotation
 
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
+from transtac_sim.physics.reductions import max_abs, negated_free, step_summary
 
 #: Inexact Newton (Eisenstat & Walker 1996): the CG (device; on the host, preconditioned with the kept factorisation,
 #: linear.py) solves each Newton system to a relative residual
@@ -125,22 +126,19 @@ class NewtonSteps:
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
         while True:
-            g_np = self._gradient(ind).numpy()
-            g_np[self._fixed_nodes] = 0.0
-            if not np.any(g_np):  # e.g. nothing touches yet: already at equilibrium
+            rhs, g_norm = negated_free(self._gradient(ind), self._fixed_mask)  # -g and |g| on the free components
+            if g_norm == 0.0:  # e.g. nothing touches yet: already at equilibrium
                 return True, iterations, "", 0.0
-            g_norm = float(np.linalg.norm(g_np))
             g_first = g_first or g_norm
-            estimate = self._linear.solve_last(-g_np, exact_below=10.0 * tol) if full_step else None
-            remaining = float(np.max(np.abs(estimate))) if estimate is not None else np.inf
+            estimate = self._linear.solve_last(rhs, exact_below=10.0 * tol) if full_step else None
+            remaining = max_abs(estimate) if estimate is not None else np.inf
             if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                 continue
             if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
                 energy_here = None
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
-                fem.linalg.array_axpy(x=wp.array(estimate, dtype=wp.vec3d, device=self.device),
-                                      y=self._u_try.dof_values, alpha=1.0)
+                fem.linalg.array_axpy(x=estimate, y=self._u_try.dof_values, alpha=1.0)
                 if self._min_det(self._u_try) > 0.0:
                     wp.copy(self.u.dof_values, self._u_try.dof_values)
                 pen = self._raise_stiffness(ind, raises)
@@ -153,7 +151,6 @@ class NewtonSteps:
                 return False, iterations, "Newton iteration limit reached" + why, 0.0
             iterations += 1
             energy = energy_here if energy_here is not None else self._energy(self.u, ind)
-            rhs = wp.array(-g_np, dtype=wp.vec3d, device=self.device)
             rtol = max(min(FORCING_MAX, g_norm / g_first), self._linear.cg_tol)
             ladder = self._hessian_ladder()
             for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
@@ -163,10 +160,9 @@ class NewtonSteps:
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
-                du_np = du.numpy()
-                slope = float(np.sum(du_np * g_np))
-                step_max = float(np.max(np.abs(du_np)))
-                if np.all(np.isfinite(du_np)) and (step_max < tol or slope < 0.0):
+                du_dot_rhs, step_max, finite = step_summary(du, rhs)
+                slope = -du_dot_rhs  # E'(0) along du: du . g
+                if finite and (step_max < tol or slope < 0.0):
                     break  # at a round-off gradient (e.g. GPU atomics where nothing touches) the slope means nothing
             else:
                 return False, iterations, "Newton direction is not a descent direction", 0.0
@@ -233,7 +229,7 @@ class NewtonSteps:
         tol = self.settings.newton_tol_mm
         if remaining == np.inf:  # no step estimate: not closer than any change (the usual case; no device read)
             return False
-        change = self._max_difference(self.u.dof_values, self.u_lag.dof_values)
+        change = max_abs(self.u.dof_values, self.u_lag.dof_values)
         if change < 10.0 * tol or remaining >= max(tol, LAG_MOVE_RATIO * change):
             return False
         wp.copy(self.u_lag.dof_values, self.u.dof_values)

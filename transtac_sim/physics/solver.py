@@ -125,6 +125,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
                                     node_positions_mm=self._node_positions.numpy() if coarse else None,
                                     coarse_cell_mm=settings.coarse_cell_mm if coarse else None)
         self._fixed_nodes = fixed_nodes
+        self._fixed_mask = wp.array(fixed_nodes.astype(np.float64), dtype=wp.vec3d, device=self.device)  # 1: fixed
 
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]

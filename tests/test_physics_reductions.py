@@ -1,0 +1,61 @@
+"""The Newton loop's device reductions (physics/reductions.py) against numpy: exact for maxima and minima, to round-off
+for sums; NaN and infinity handled as the numpy code they replace handled them; the same bits on every run."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from transtac_sim.physics.reductions import extremes, max_abs, negated_free, step_summary
+
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
+N = 3001  # not a multiple of the block's 256 threads
+
+
+def _vec(a: np.ndarray, device) -> wp.array:
+    return wp.array(a, dtype=wp.vec3d, device=device)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_max_abs_is_numpys(device):
+    a, b = np.random.default_rng(3).standard_normal((2, N, 3))
+    b[123, 1] = a[123, 1] + 7.5  # the largest difference, in one component of one node
+    got = max_abs(_vec(a, device), _vec(b, device))
+    assert got == np.max(np.abs(a - b)) and abs(got - 7.5) < 1e-12
+    a[2999, 2] = -9.25  # the largest entry, negative
+    assert max_abs(_vec(a, device)) == 9.25
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_extremes_are_numpys_and_nan_wins(device):
+    x = np.random.default_rng(4).standard_normal(4 * N)
+    assert extremes(wp.array(x, dtype=wp.float64, device=device)) == (x.min(), x.max())
+    x[17] = np.nan  # det F of a broken state: min(det F) > 0 must then be False, as with numpy's NaN
+    low, high = extremes(wp.array(x, dtype=wp.float64, device=device))
+    assert np.isnan(low) and np.isnan(high) and not low > 0.0
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_negated_free_zeroes_the_fixed_components(device):
+    rng = np.random.default_rng(5)
+    g = rng.standard_normal((N, 3))
+    fixed = (rng.random((N, 3)) < 0.3).astype(np.float64)
+    rhs, norm = negated_free(_vec(g, device), _vec(fixed, device))
+    expected = -g * (1.0 - fixed)
+    assert np.array_equal(rhs.numpy(), expected)
+    assert norm == pytest.approx(np.linalg.norm(expected), rel=1e-14)
+    _, zero = negated_free(_vec(g, device), _vec(np.ones((N, 3)), device))
+    assert zero == 0.0  # every component fixed: Newton's "already at equilibrium"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_step_summary_slope_length_and_sanity(device):
+    rng = np.random.default_rng(6)
+    du, rhs = rng.standard_normal((2, N, 3))
+    dot, largest, finite = step_summary(_vec(du, device), _vec(rhs, device))
+    assert dot == pytest.approx(np.sum(du * rhs), rel=1e-13) and largest == np.max(np.abs(du)) and finite
+    again = step_summary(_vec(du, device), _vec(rhs, device))
+    assert again == (dot, largest, finite)  # one thread block, no atomics: the same bits every run
+    for bad in (np.nan, np.inf, -np.inf):
+        broken = du.copy()
+        broken[77, 0] = bad
+        assert step_summary(_vec(broken, device), _vec(rhs, device))[2] is False

@@ -1,0 +1,127 @@
+"""Reductions of the Newton loop's vectors on the solver's device, so that the host reads a few scalars instead of
+whole vectors (newton.py).
+
+Each kernel runs as one thread block of ``REDUCTION_THREADS`` threads striding over the array, then a tile
+reduction: no atomics, so every run gives the same bits, and the sums are summed in a fixed order. What they
+replace: the gradient, the Newton step, the step estimate, the iterate's largest entry and the 4 det F per tet
+read to numpy once or twice per Newton pass (about 0.75 MB each on press_slide's 31k nodes; 2,553 device-to-host
+copies over frames 1-9 on an H100, 0.33 s of copying against 3.9 s of frames, BENCHMARKS.md
+``fem_device_reductions_gpu``).
+
+Vectors are arrays of vec3d (one per node, mm or N); ``fixed`` is 1.0 on the fixed components, 0.0 elsewhere.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+REDUCTION_THREADS = 256
+
+
+@wp.kernel(enable_backward=False)
+def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+    """out[0] = max over entries and components of |a - b|; b empty: of |a|."""
+    _, lane = wp.tid()
+    largest = wp.float64(0.0)
+    for i in range(lane, a.shape[0], wp.block_dim()):
+        d = a[i]
+        if b.shape[0] > 0:
+            d = d - b[i]
+        largest = wp.max(largest, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+    total = wp.tile_max(wp.tile(largest))
+    if lane == 0:
+        out[0] = total[0]
+
+
+@wp.kernel(enable_backward=False)
+def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    """out = [min, max, NaN count] of a."""
+    _, lane = wp.tid()
+    low = wp.float64(1.0e300)
+    high = wp.float64(-1.0e300)
+    nans = wp.float64(0.0)
+    for i in range(lane, a.shape[0], wp.block_dim()):
+        v = a[i]
+        if wp.isnan(v):
+            nans += wp.float64(1.0)
+        else:
+            low = wp.min(low, v)
+            high = wp.max(high, v)
+    lows = wp.tile_min(wp.tile(low))
+    highs = wp.tile_max(wp.tile(high))
+    count = wp.tile_sum(wp.tile(nans))
+    if lane == 0:
+        out[0] = lows[0]
+        out[1] = highs[0]
+        out[2] = count[0]
+
+
+@wp.kernel(enable_backward=False)
+def _negated_free(g: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d),
+                  out: wp.array(dtype=wp.float64)):
+    """rhs = -g on the free components (0 on the fixed ones); out[0] = |rhs|^2."""
+    _, lane = wp.tid()
+    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    squares = wp.float64(0.0)
+    for i in range(lane, g.shape[0], wp.block_dim()):
+        v = -wp.cw_mul(g[i], one - fixed[i])
+        rhs[i] = v
+        squares += wp.dot(v, v)
+    total = wp.tile_sum(wp.tile(squares))
+    if lane == 0:
+        out[0] = total[0]
+
+
+@wp.kernel(enable_backward=False)
+def _step_summary(du: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
+    """out = [du . rhs, max |du| over entries and components, count of entries with a NaN or an infinity]."""
+    _, lane = wp.tid()
+    dot = wp.float64(0.0)
+    largest = wp.float64(0.0)
+    bad = wp.float64(0.0)
+    for i in range(lane, du.shape[0], wp.block_dim()):
+        d = du[i]
+        if wp.isfinite(d):
+            dot += wp.dot(d, rhs[i])
+            largest = wp.max(largest, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+        else:
+            bad += wp.float64(1.0)
+    dots = wp.tile_sum(wp.tile(dot))
+    largests = wp.tile_max(wp.tile(largest))
+    bads = wp.tile_sum(wp.tile(bad))
+    if lane == 0:
+        out[0] = dots[0]
+        out[1] = largests[0]
+        out[2] = bads[0]
+
+
+def _reduce(kernel, inputs: list, size: int, device) -> list[float]:
+    out = wp.empty(size, dtype=wp.float64, device=device)
+    wp.launch_tiled(kernel, dim=[1], block_dim=REDUCTION_THREADS, device=device, inputs=[*inputs, out])
+    return [float(v) for v in out.numpy()]
+
+
+def max_abs(a: wp.array, b: wp.array | None = None) -> float:
+    """max |a - b| (max |a| without b) over the entries and components of vec3d arrays."""
+    empty = wp.empty(0, dtype=wp.vec3d, device=a.device)
+    return _reduce(_max_abs_difference, [a, b if b is not None else empty], 1, a.device)[0]
+
+
+def extremes(a: wp.array) -> tuple[float, float]:
+    """(min, max) of a float64 array; (NaN, NaN) where it holds a NaN, as numpy's min and max."""
+    low, high, nans = _reduce(_extremes, [a], 3, a.device)
+    return (float("nan"), float("nan")) if nans else (low, high)
+
+
+def negated_free(g: wp.array, fixed: wp.array) -> tuple[wp.array, float]:
+    """(-g with its fixed components set to 0, the norm of that): Newton's right-hand side and |g| on the free dofs."""
+    rhs = wp.empty_like(g)
+    (squares,) = _reduce(_negated_free, [g, fixed, rhs], 1, g.device)
+    return rhs, squares ** 0.5
+
+
+def step_summary(du: wp.array, rhs: wp.array) -> tuple[float, float, bool]:
+    """(du . rhs, max |du|, whether every entry of du is finite): a Newton step's slope (with rhs = -g, -(du . g)),
+    length and sanity in one read. The sum and the maximum are over the finite entries."""
+    dot, largest, bad = _reduce(_step_summary, [du, rhs], 3, du.device)
+    return dot, largest, bad == 0.0
