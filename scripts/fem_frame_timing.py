@@ -155,8 +155,10 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
-         lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION) -> None:
-    solver_variants.apply(warm_start, exact_below, lag_move_ratio)
+         lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
+         estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
+         estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION) -> None:
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor)
     if max_newton_iterations is not None:
         import functools
 

@@ -67,6 +67,12 @@ PHASES = {
 }
 
 
+#: the LinearSolver's counters the phase clock reports since its last reset: device solves stopped at non-positive
+#: curvature, host (direct path) factorisations (failed ones included), the device step estimates' CG iterations and
+#: those of them that did not converge
+COUNTS = ("not_definite", "factorisations", "estimate_iterations", "estimates_unconverged")
+
+
 class PhaseClock:
     """Exclusive seconds and calls per phase; nested phases are charged to the innermost one."""
 
@@ -75,8 +81,7 @@ class PhaseClock:
         self.calls: dict[str, int] = defaultdict(int)
         self.linear_iterations: list[int] = []
         self.linear_solver: LinearSolver | None = None
-        self._not_definite_before = 0  # the LinearSolver's counts at the last reset
-        self._factorisations_before = 0
+        self._counts_before: dict[str, int] = {}  # the LinearSolver's counts at the last reset
         self._stack: list[list] = []  # [name, start, child seconds]
 
     def wrap(self, cls, name: str):
@@ -108,18 +113,11 @@ class PhaseClock:
         self.seconds.clear()
         self.calls.clear()
         self.linear_iterations.clear()
-        self._not_definite_before = self.linear_solver.not_definite if self.linear_solver else 0
-        self._factorisations_before = self.linear_solver.factorisations if self.linear_solver else 0
+        self._counts_before = {name: getattr(self.linear_solver, name) for name in COUNTS} if self.linear_solver else {}
 
-    @property
-    def not_definite(self) -> int:
-        """Device solves stopped at non-positive curvature since the last reset."""
-        return self.linear_solver.not_definite - self._not_definite_before if self.linear_solver else 0
-
-    @property
-    def factorisations(self) -> int:
-        """Host (direct path) factorisations since the last reset, failed ones (not positive definite) included."""
-        return self.linear_solver.factorisations - self._factorisations_before if self.linear_solver else 0
+    def count(self, name: str) -> int:
+        """One of the LinearSolver's ``COUNTS`` since the last reset."""
+        return getattr(self.linear_solver, name) - self._counts_before.get(name, 0) if self.linear_solver else 0
 
 
 def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
@@ -129,7 +127,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
-         lag_move_ratio: float = solver_variants.LAG_MOVE_RATIO_OPTION,
+         lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
+         estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
+         estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
@@ -147,7 +147,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
-    solver_variants.apply(warm_start, exact_below, lag_move_ratio)
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
@@ -215,7 +215,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
-          f"forcing max {forcing_max:g}, lag move ratio {lag_move_ratio:g}, "
+          f"forcing max {forcing_max:g}, lag move ratios {newton.LAG_MOVE_RATIOS}, estimate rtol "
+          f"{device_linear.ESTIMATE_RTOL:g} (cap {device_linear.ESTIMATE_CAP_FACTOR:g}x), "
           f"friction lag moves {physics.friction_lag_moves}, exact below "
           f"{newton.EXACT_BELOW:g} tol{', no exact Hessian' if clamped_only else ''}"
           f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}: "
@@ -225,8 +226,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         print_gpu_activity(activity, total)
         return
     work = clock.linear_solver._work if clock.linear_solver else None
-    print(f"device solves stopped at non-positive curvature: {clock.not_definite}; host factorisations: "
-          f"{clock.factorisations}; device CG graphs captured in the kept workspace (all frames): "
+    print(f"device solves stopped at non-positive curvature: {clock.count('not_definite')}; host factorisations: "
+          f"{clock.count('factorisations')}; step estimates: {clock.calls.get('solve_last', 0)} (on the device: "
+          f"{clock.count('estimate_iterations')} CG iterations, {clock.count('estimates_unconverged')} not "
+          f"converged); device CG graphs captured in the kept workspace (all frames): "
           f"{work.cg.captures if work else 0}; coarse level: "
           f"{(clock.linear_solver.coarse_stats() if clock.linear_solver else {}) or 'none'}")
     print("| phase | calls | s | ms per call | share |")

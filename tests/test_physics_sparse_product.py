@@ -18,6 +18,7 @@ from transtac_sim.physics import (
     RigidIndenter,
     SolverSettings,
     contact,
+    device_linear,
     elasticity,
 )
 from transtac_sim.physics.box_mesh import gel_block
@@ -167,6 +168,32 @@ def test_device_last_resort_solves_the_shifted_system():
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-10) is None
     linear.cg_maxiter = 1
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=False, rtol=1e-10) is None
+
+
+def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch):
+    """The device's step estimate (``solve_last``, device_linear.py): the last converged system solved for a new
+    right-hand side to ``ESTIMATE_RTOL``, on to ``cg_tol`` where it is below ``exact_below``; within
+    ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations, else None; its iterations and failures counted."""
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    g = solver._gradient(ind).numpy()
+    g[solver._fixed_nodes] = 0.0
+    H = solver._hessian(ind, 1.0, True)
+    assert linear.solve(H, wp.array(-g, dtype=wp.vec3d), rtol=0.01) is not None
+    A = bsr_to_scipy(H).tocsr()[linear._free][:, linear._free]  # H was projected in place by the solve
+    b = np.random.default_rng(7).standard_normal(g.shape)
+    b[solver._fixed_nodes] = 0.0
+
+    def residual(x):
+        return np.linalg.norm(b.reshape(-1)[linear._free] - A @ x.numpy().reshape(-1)[linear._free]) / np.linalg.norm(b)
+
+    loose = linear.solve_last(wp.array(b, dtype=wp.vec3d))
+    assert loose is not None and linear.cg_tol < residual(loose) <= device_linear.ESTIMATE_RTOL
+    assert np.all(loose.numpy()[solver._fixed_nodes] == 0.0) and linear.estimate_iterations > 0
+    tight = linear.solve_last(wp.array(b, dtype=wp.vec3d), exact_below=1e9)  # small enough: on to cg_tol
+    assert residual(tight) <= linear.cg_tol
+    monkeypatch.setattr(device_linear, "ESTIMATE_RTOL", 1e-12)  # not reachable within 2x the system's iterations
+    assert linear.solve_last(wp.array(b, dtype=wp.vec3d)) is None and linear.estimates_unconverged == 1
 
 
 @fem.integrand

@@ -63,6 +63,8 @@ class LinearSolver(DeviceSolves):
         self.shifted_solves = 0  # device systems solved only with a Levenberg-Marquardt shift (``SHIFTS``)
         self.last_shift = 0.0  # the shift lambda of the last solve's result (0: a Newton step)
         self.not_definite = 0  # device solves stopped because the matrix is not positive definite
+        self.estimate_iterations = 0  # device CG iterations of the step estimates (``solve_last``)
+        self.estimates_unconverged = 0  # device step estimates that did not converge (None returned)
         self._lu = None
         self._last_free: sp.csc_matrix | None = None  # the last direct system's free-dof matrix
         self._free_map: tuple | None = None  # (H's block columns, gather, CSC indices, CSC indptr): ``_free_matrix``
@@ -183,12 +185,12 @@ class LinearSolver(DeviceSolves):
         """The last system's matrix solved for another right-hand side ``rhs`` (vec3d per node, on the device; 0 on the
         fixed components), without assembly or factorisation: by CG preconditioned with the kept factorisation (direct
         path: to ``ESTIMATE_RTOL``, then on to ``rtol`` where the solution is below ``exact_below`` mm) or with the
-        kept block-Jacobi preconditioner on the device (CG path: to ``rtol``, then on to ``cg_tol`` where the solution
-        is below ``exact_below`` mm), because an early-stopped CG solution is shorter than the exact one and the caller
-        tests convergence on it. A new array on the device with 0 on the fixed components, or None (no system yet, or
+        kept preconditioner on the device (CG path: to device_linear.ESTIMATE_RTOL, then on to ``cg_tol`` where the
+        solution is below ``exact_below`` mm), because an early-stopped CG solution is shorter than the exact one and
+        the caller tests convergence on it. A new array on the device with 0 on the fixed components, or None (no system yet, or
         no convergence within the iterations allowed)."""
         if self.method == "cg":
-            return self._solve_last_cg(rhs, rtol, exact_below)
+            return self._solve_last_cg(rhs, exact_below)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:
             return None
         b = rhs.numpy().reshape(-1)[self._free]

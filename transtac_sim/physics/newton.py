@@ -83,10 +83,15 @@ FORCING_MAX = 0.01
 STALL_STEPS = 10
 STALL_ALPHA = 1.0 / 16.0
 
-#: friction's lag is moved once Newton's estimated remaining step is below this fraction of |u - u_lag| (``_move_lag``):
-#: moved earlier (0.3, 1.0; with a second Hessian since removed) the press_slide frames took more Newton iterations and
-#: their markers left the lag-converged solution by up to 0.45 mm (BENCHMARKS.md ``fem_slide_iterations_gpu``)
-LAG_MOVE_RATIO = 0.1
+#: friction's lag is moved once Newton's estimated remaining step is below this fraction of |u - u_lag| (``_move_lag``),
+#: per linear solver: moved earlier (0.3, 1.0; with a second Hessian since removed) the press_slide frames took more
+#: Newton iterations and their markers left the lag-converged solution by up to 0.45 mm (BENCHMARKS.md
+#: ``fem_slide_iterations_gpu``). The device path ("cg") takes 0.03 since its step estimates converge
+#: (device_linear.ESTIMATE_RTOL): with 0.1 its lag then moved earlier, and the 4 moves per step ended up to 0.012 mm
+#: from the lag-converged markers on the tiny mesh with press_slide's motion, against 0.0016 mm with 0.03 and before;
+#: the host path keeps 0.1 (0.03 there: the same markers, 20 instead of 16 Newton iterations on the tiny press fixture;
+#: BENCHMARKS.md ``fem_step_estimate``)
+LAG_MOVE_RATIOS = {"direct": 0.1, "cg": 0.03}
 
 #: a Newton system's CG goes on to the tight tolerance (linear.py ``cg_tol``) where its step is below this many
 #: newton_tol_mm: there the step's length decides the convergence test, and a loosely solved step is shorter
@@ -223,14 +228,15 @@ class NewtonSteps:
 
     def _move_lag(self, ind, remaining: float) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
-        u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, LAG_MOVE_RATIO x |u - u_lag|),
+        u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, r x |u - u_lag|), r the linear
+        solver's ``LAG_MOVE_RATIOS``,
         and |u - u_lag| >= 10 newton_tol_mm. True if moved (an inexact fixed point on the lag: each lag is solved
         only as far as the next one makes worth it, instead of to the tolerance)."""
         tol = self.settings.newton_tol_mm
         if remaining == np.inf:  # no step estimate: not closer than any change (the usual case; no device read)
             return False
         change = max_abs(self.u.dof_values, self.u_lag.dof_values)
-        if change < 10.0 * tol or remaining >= max(tol, LAG_MOVE_RATIO * change):
+        if change < 10.0 * tol or remaining >= max(tol, LAG_MOVE_RATIOS[self._linear.method] * change):
             return False
         wp.copy(self.u_lag.dof_values, self.u.dof_values)
         self._update_lag(ind)
