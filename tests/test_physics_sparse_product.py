@@ -28,13 +28,15 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
-def _pressed_solver(degree: int = 2):
-    """A sphere pressed 0.3 mm into a small P2 (or P1) block (friction 0.5), and its indenter struct, with the contact
-    state of the solution stored."""
+
+def _pressed_solver(degree: int = 2, device: str = "cpu"):
+    """A sphere pressed 0.3 mm into a small P2 (or P1) block (friction 0.5) on ``device``, and its indenter struct, with
+    the contact state of the solution stored."""
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], SolverSettings(degree=degree))
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], SolverSettings(degree=degree), device=device)
     P = np.eye(4)
     P[2, 3] = 4.0 + 1e-3
     solver.start([P])
@@ -170,16 +172,17 @@ def test_device_last_resort_solves_the_shifted_system():
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=False, rtol=1e-10) is None
 
 
-def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch):
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch, device):
     """The device's step estimate (``solve_last``, device_linear.py): the last converged system solved for a new
     right-hand side to ``ESTIMATE_RTOL``, on to ``cg_tol`` where it is below ``exact_below``; within
     ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations, else None; its iterations and failures counted."""
-    solver, ind = _pressed_solver()
+    solver, ind = _pressed_solver(device=device)
     linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
     g = solver._gradient(ind).numpy()
     g[solver._fixed_nodes] = 0.0
     H = solver._hessian(ind, 1.0, True)
-    assert linear.solve(H, wp.array(-g, dtype=wp.vec3d), rtol=0.01) is not None
+    assert linear.solve(H, wp.array(-g, dtype=wp.vec3d, device=device), rtol=0.01) is not None
     A = bsr_to_scipy(H).tocsr()[linear._free][:, linear._free]  # H was projected in place by the solve
     b = np.random.default_rng(7).standard_normal(g.shape)
     b[solver._fixed_nodes] = 0.0
@@ -187,13 +190,42 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
     def residual(x):
         return np.linalg.norm(b.reshape(-1)[linear._free] - A @ x.numpy().reshape(-1)[linear._free]) / np.linalg.norm(b)
 
-    loose = linear.solve_last(wp.array(b, dtype=wp.vec3d))
+    loose = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device))
     assert loose is not None and linear.cg_tol < residual(loose) <= device_linear.ESTIMATE_RTOL
     assert np.all(loose.numpy()[solver._fixed_nodes] == 0.0) and linear.estimate_iterations > 0
-    tight = linear.solve_last(wp.array(b, dtype=wp.vec3d), exact_below=1e9)  # small enough: on to cg_tol
+    tight = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device), exact_below=1e9)  # small enough: on to cg_tol
     assert residual(tight) <= linear.cg_tol
     monkeypatch.setattr(device_linear, "ESTIMATE_RTOL", 1e-12)  # not reachable within 2x the system's iterations
-    assert linear.solve_last(wp.array(b, dtype=wp.vec3d)) is None and linear.estimates_unconverged == 1
+    assert linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device)) is None and linear.estimates_unconverged == 1
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_replayed_energy_and_min_det_read_the_current_values(device):
+    """``_energy`` and ``_min_det`` replay CUDA graphs (replay.py; on the CPU they launch every time): a replay reads the
+    field's current values, a stiffness change or a new indenter struct makes a new graph, and every value equals the
+    one launched without a graph."""
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy()
+
+    def launched(u):  # without any graph
+        solver._energy_terms(u, ind)
+        J = wp.empty(solver._q_det.total_point_count(), dtype=wp.float64, device=solver.device)
+        fem.interpolate(elasticity.det_form, dest=J, at=solver._q_det, fields={"u": u})
+        return float(solver._energy_sum.numpy()[0]), float(J.numpy().min())
+
+    solver._graphs.clear()  # the graphs of the solve that made the state
+    before = solver._graphs.captures
+    expected, got = [], []
+    for k, stiffness in enumerate((ind.stiffness, 2.0 * ind.stiffness)):  # baked into the energy's graph: a new key
+        ind.stiffness = stiffness
+        for scale in (1.0, 0.5, 0.9, 0.8):  # the first call launches, the second captures, the rest replay
+            solver._u_try.dof_values.assign((scale + 0.05 * k) * u0)
+            got.append((solver._energy(solver._u_try, ind), solver._min_det(solver._u_try)))
+            expected.append(launched(solver._u_try))
+    np.testing.assert_allclose(got, expected, rtol=1e-12)
+    assert len({e for e, _ in got}) == len(got)  # every state gave its own energy
+    if solver.device.is_cuda:  # energy and det F once each, then the energy again for the new stiffness
+        assert solver._graphs.captures - before == 3
 
 
 @fem.integrand

@@ -30,7 +30,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
 from transtac_sim.physics.definite_cg import add_dot
-from transtac_sim.physics.reductions import extremes, negated_free
+from transtac_sim.physics.reductions import extremes, launch_extremes, negated_free, read_extremes
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
@@ -114,7 +114,15 @@ class Assembly:
         return self._dev
 
     def _energy(self, u, ind) -> float:
-        """E(u) (N mm): each term added into one device scalar (``self._energy_sum``), read once."""
+        """E(u) (N mm): each term added into one device scalar (``self._energy_sum``), read once; on a GPU the
+        launches are replayed as a CUDA graph per displacement field, indenter struct and contact stiffness
+        (replay.py)."""
+        key = ("energy", u.dof_values.ptr, id(ind), float(ind.stiffness))
+        self._graphs.run(key, (u, ind), lambda: self._energy_terms(u, ind))
+        return float(self._energy_sum.numpy()[0])
+
+    def _energy_terms(self, u, ind) -> None:
+        """E(u)'s terms summed into ``self._energy_sum`` (launches only)."""
         vals = {"params": self._params}
         dev = self._deviatoric()
         total = self._energy_sum
@@ -129,7 +137,6 @@ class Assembly:
         if ind.count:
             fem.integrate(contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
                           values=self._contact_values(ind), output=total, add=True)
-        return float(total.numpy()[0])
 
     def _gradient(self, ind) -> wp.array:
         """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""
@@ -246,10 +253,16 @@ class Assembly:
         return negated_free(g, self._fixed_mask)[1]
 
     def _min_det(self, u) -> float:
-        """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN)."""
-        J = wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device)
-        fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
-        return extremes(J)[0]
+        """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN); replayed as a CUDA
+        graph per displacement field on a GPU (replay.py)."""
+        J, out = self._det_work
+
+        def launches():
+            fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
+            launch_extremes(J, out)
+
+        self._graphs.run(("min_det", u.dof_values.ptr), (u,), launches)
+        return read_extremes(out)[0]
 
     def _max_penetration(self, ind) -> float:
         """The largest penetration (mm) at the contact quadrature points."""

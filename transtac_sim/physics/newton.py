@@ -52,6 +52,13 @@ right after a lag move (on the tiny press fixture such an estimate never showed 
 solution). Tiny press fixture, frames 0-1 on the 2-core CPU: 8 -> 4 factorisations, 18 -> 14 Newton iterations,
 4.9-5.2 -> 3.8-4.0 s. On an H100 (the estimate skip is the only device-path change) train_random sequences 0-7 took
 1193 against 1233 Newton iterations (``fem_lag_estimate_gpu``).
+
+Issue 12, sixth pass, the device path again (press_slide frames 1-9 on an H100: 0.88-0.98x, 0.89-0.93x and 0.95x the
+time in three steps, each against the tree before it in one lease; about 0.33 s per frame at the end): the gradient, step
+and step estimate stay on the device and are reduced there to the scalars this loop reads (reductions.py;
+``fem_device_reductions_gpu``); the step estimate is solved to a loose tolerance within a larger cap instead of running
+into its cap and being thrown away, with friction's lag then moved at a closer remaining step (``LAG_MOVE_RATIOS``;
+``fem_step_estimate``); the line search's energy and det F replay CUDA graphs (replay.py; ``fem_graph_replay_gpu``).
 """
 
 from __future__ import annotations
@@ -334,6 +341,7 @@ class NewtonSteps:
         """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result
         (``may_stall``: see there)."""
         ind = self._indenter_struct(poses, prev_poses)
+        self._graphs.clear()  # the graphs of the last load step baked its indenter struct in
         self._linear.new_load_step()
         wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
         # first lag: the contact of the last converged state, where it was (with the previous poses), or that of

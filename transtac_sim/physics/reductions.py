@@ -95,9 +95,13 @@ def _step_summary(du: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d), o
         out[2] = bads[0]
 
 
+def _launch(kernel, inputs: list, out: wp.array) -> None:
+    wp.launch_tiled(kernel, dim=[1], block_dim=REDUCTION_THREADS, device=out.device, inputs=[*inputs, out])
+
+
 def _reduce(kernel, inputs: list, size: int, device) -> list[float]:
     out = wp.empty(size, dtype=wp.float64, device=device)
-    wp.launch_tiled(kernel, dim=[1], block_dim=REDUCTION_THREADS, device=device, inputs=[*inputs, out])
+    _launch(kernel, inputs, out)
     return [float(v) for v in out.numpy()]
 
 
@@ -109,7 +113,17 @@ def max_abs(a: wp.array, b: wp.array | None = None) -> float:
 
 def extremes(a: wp.array) -> tuple[float, float]:
     """(min, max) of a float64 array; (NaN, NaN) where it holds a NaN, as numpy's min and max."""
-    low, high, nans = _reduce(_extremes, [a], 3, a.device)
+    return read_extremes(_reduce(_extremes, [a], 3, a.device))
+
+
+def launch_extremes(a: wp.array, out: wp.array) -> None:
+    """``extremes`` without the read: [min, max, NaN count] of a into out (3 float64), for ``read_extremes``."""
+    _launch(_extremes, [a], out)
+
+
+def read_extremes(out) -> tuple[float, float]:
+    """(min, max) from ``launch_extremes``'s [min, max, NaN count] (a device array or its values)."""
+    low, high, nans = (float(v) for v in (out.numpy() if isinstance(out, wp.array) else out))
     return (float("nan"), float("nan")) if nans else (low, high)
 
 

@@ -33,6 +33,7 @@ from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
 from transtac_sim.physics.newton import NewtonSteps
+from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solver's API)
     FrameResult,
     IndenterStartsInsideGel,
@@ -132,6 +133,9 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self._poses: list[np.ndarray] | None = None
         self._barrier_acts = False  # some det F below the barrier's threshold at the last ``_gradient``'s u
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
+        self._det_work = (wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device),
+                          wp.empty(3, dtype=wp.float64, device=self.device))  # ``_min_det``'s det F and extremes
+        self._graphs = GraphCache(self.device)  # ``_energy`` and ``_min_det`` as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._volumetric = None  # the tet-by-tet volumetric Hessian's set-up (volumetric_hessian.py), made on first use
