@@ -23,6 +23,8 @@ def test_max_abs_is_numpys(device):
     assert got == np.max(np.abs(a - b)) and abs(got - 7.5) < 1e-12
     a[2999, 2] = -9.25  # the largest entry, negative
     assert max_abs(_vec(a, device)) == 9.25
+    a[5, 0] = np.nan  # NaN wins, as in numpy's max: a broken step or estimate is never taken as short
+    assert np.isnan(max_abs(_vec(a, device))) and np.isnan(max_abs(_vec(b, device), _vec(a, device)))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -32,6 +34,8 @@ def test_extremes_are_numpys_and_nan_wins(device):
     x[17] = np.nan  # det F of a broken state: min(det F) > 0 must then be False, as with numpy's NaN
     low, high = extremes(wp.array(x, dtype=wp.float64, device=device))
     assert np.isnan(low) and np.isnan(high) and not low > 0.0
+    with pytest.raises(ValueError, match="empty"):
+        extremes(wp.empty(0, dtype=wp.float64, device=device))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -45,6 +49,9 @@ def test_negated_free_zeroes_the_fixed_components(device):
     assert norm == pytest.approx(np.linalg.norm(expected), rel=1e-14)
     _, zero = negated_free(_vec(g, device), _vec(np.ones((N, 3)), device))
     assert zero == 0.0  # every component fixed: Newton's "already at equilibrium"
+    g[np.flatnonzero(fixed[:, 0])[0], 0] = np.inf  # whatever a fixed component holds, it is dropped
+    rhs, again = negated_free(_vec(g, device), _vec(fixed, device))
+    assert np.array_equal(rhs.numpy(), expected) and again == norm
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -201,14 +201,15 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_replayed_energy_and_min_det_read_the_current_values(device):
-    """``_energy`` and ``_min_det`` replay CUDA graphs (replay.py; on the CPU they launch every time): a replay reads the
-    field's current values, a stiffness change or a new indenter struct makes a new graph, and every value equals the
-    one launched without a graph."""
+    """``_energy`` and ``_min_det`` replay CUDA graphs (replay.py): a replay reads the field's current values and the
+    contact state changed in place (friction's lag moved), a stiffness change or a new indenter struct makes a new
+    graph, and every value equals the one launched without a graph. On the CPU there are no graphs: its case checks
+    the launch path only; the replay is checked by the CUDA case."""
     solver, ind = _pressed_solver(device=device)
     u0 = solver.u.dof_values.numpy()
 
-    def launched(u):  # without any graph
-        solver._energy_terms(u, ind)
+    def launched(u, which):  # without any graph
+        solver._energy_terms(u, which)
         J = wp.empty(solver._q_det.total_point_count(), dtype=wp.float64, device=solver.device)
         fem.interpolate(elasticity.det_form, dest=J, at=solver._q_det, fields={"u": u})
         return float(solver._energy_sum.numpy()[0]), float(J.numpy().min())
@@ -221,11 +222,21 @@ def test_replayed_energy_and_min_det_read_the_current_values(device):
         for scale in (1.0, 0.5, 0.9, 0.8):  # the first call launches, the second captures, the rest replay
             solver._u_try.dof_values.assign((scale + 0.05 * k) * u0)
             got.append((solver._energy(solver._u_try, ind), solver._min_det(solver._u_try)))
-            expected.append(launched(solver._u_try))
+            expected.append(launched(solver._u_try, ind))
+    solver.u_lag.dof_values.assign(0.5 * u0)  # friction's lag moved: the contact state changes in place
+    solver._update_lag(ind)
+    got.append((solver._energy(solver._u_try, ind), solver._min_det(solver._u_try)))  # replayed
+    expected.append(launched(solver._u_try, ind))
+    fresh = solver._indenter_struct(solver._poses, solver._poses)  # a new struct: a new key
+    fresh.stiffness = ind.stiffness
+    for _ in range(3):  # launched, captured, replayed
+        got.append((solver._energy(solver._u_try, fresh), solver._min_det(solver._u_try)))
+        expected.append(launched(solver._u_try, fresh))
     np.testing.assert_allclose(got, expected, rtol=1e-12)
-    assert len({e for e, _ in got}) == len(got)  # every state gave its own energy
-    if solver.device.is_cuda:  # energy and det F once each, then the energy again for the new stiffness
-        assert solver._graphs.captures - before == 3
+    assert len({e for e, _ in got[:8]}) == 8  # every state gave its own energy
+    assert got[8][0] != got[7][0]  # the moved lag changed the friction energy, and the replay saw it
+    if solver.device.is_cuda:  # energy and det F once each, the energy again for the new stiffness and struct
+        assert solver._graphs.captures - before == 4
 
 
 @fem.integrand

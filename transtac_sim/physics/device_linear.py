@@ -122,8 +122,8 @@ SHIFTS = (1.0e-2, 1.0, 1.0e2)
 COARSE_REFRESH_STEPS = 10
 
 #: the step estimate (``solve_last``; newton.py) is solved to this relative residual, and on to ``cg_tol`` only where it
-#: is below the caller's ``exact_below`` (where Newton's convergence test reads its length), in at most this factor
-#: times the last converged system's CG iterations. Far from that, Newton only compares it with friction's lag change
+#: is below the caller's ``exact_below`` (where Newton's convergence test reads its length); the first stage in at most
+#: this factor times the last converged system's CG iterations. Far from that, Newton only compares it with friction's lag change
 #: (newton.py ``_move_lag``), which a loose estimate decides as well. Before, it was solved to 1e-3 within 1x those
 #: iterations, which a system solved to Newton's loose forcing term did not reach: 58 of 103 estimates on the tiny
 #: mesh with press_slide's motion (this CPU, the device path) ran to that cap and were thrown away, 45 % of the CG
@@ -171,9 +171,9 @@ class DeviceSolves:
         return None
 
     def _solve_last_cg(self, rhs: wp.array, exact_below: float) -> wp.array | None:
-        """The step estimate on the device: the last converged system solved for ``rhs`` to ``ESTIMATE_RTOL``, on to
-        ``cg_tol`` where it is below ``exact_below`` mm, in at most ``ESTIMATE_CAP_FACTOR`` times that system's CG
-        iterations (at least 50); None where it does not converge."""
+        """The step estimate on the device: the last converged system solved for ``rhs`` to ``ESTIMATE_RTOL`` in at most
+        ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations (at least 50), then on to ``cg_tol`` (within
+        ``cg_maxiter``) where it is below ``exact_below`` mm; None where it does not converge."""
         if self._last_cg is None:
             return None
         A, M = self._last_cg

@@ -186,8 +186,8 @@ class LinearSolver(DeviceSolves):
         fixed components), without assembly or factorisation: by CG preconditioned with the kept factorisation (direct
         path: to ``ESTIMATE_RTOL``, then on to ``rtol`` where the solution is below ``exact_below`` mm) or with the
         kept preconditioner on the device (CG path: to device_linear.ESTIMATE_RTOL, then on to ``cg_tol`` where the
-        solution is below ``exact_below`` mm), because an early-stopped CG solution is shorter than the exact one and
-        the caller tests convergence on it. A new array on the device with 0 on the fixed components, or None (no system yet, or
+        solution is below ``exact_below`` mm; ``rtol`` is the direct path's only), because an early-stopped CG
+        solution is shorter than the exact one and the caller tests convergence on it. A new array on the device with 0 on the fixed components, or None (no system yet, or
         no convergence within the iterations allowed)."""
         if self.method == "cg":
             return self._solve_last_cg(rhs, exact_below)

@@ -18,19 +18,31 @@ import warp as wp
 REDUCTION_THREADS = 256
 
 
+@wp.func
+def _largest_component(d: wp.vec3d):
+    """max |d_k| over the components of d."""
+    return wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2])))
+
+
 @wp.kernel(enable_backward=False)
 def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
-    """out[0] = max over entries and components of |a - b|; b empty: of |a|."""
+    """out = [max over entries and components of |a - b| (b empty: of |a|), count of entries with a NaN]."""
     _, lane = wp.tid()
     largest = wp.float64(0.0)
+    nans = wp.float64(0.0)
     for i in range(lane, a.shape[0], wp.block_dim()):
         d = a[i]
         if b.shape[0] > 0:
             d = d - b[i]
-        largest = wp.max(largest, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+        if wp.isnan(d):
+            nans += wp.float64(1.0)
+        else:
+            largest = wp.max(largest, _largest_component(d))
     total = wp.tile_max(wp.tile(largest))
+    count = wp.tile_sum(wp.tile(nans))
     if lane == 0:
         out[0] = total[0]
+        out[1] = count[0]
 
 
 @wp.kernel(enable_backward=False)
@@ -59,12 +71,16 @@ def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
 @wp.kernel(enable_backward=False)
 def _negated_free(g: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d),
                   out: wp.array(dtype=wp.float64)):
-    """rhs = -g on the free components (0 on the fixed ones); out[0] = |rhs|^2."""
+    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); out[0] = |rhs|^2."""
     _, lane = wp.tid()
-    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    zero = wp.float64(0.0)
+    half = wp.float64(0.5)
     squares = wp.float64(0.0)
     for i in range(lane, g.shape[0], wp.block_dim()):
-        v = -wp.cw_mul(g[i], one - fixed[i])
+        f = fixed[i]
+        gi = g[i]
+        v = wp.vec3d(wp.where(f[0] > half, zero, -gi[0]), wp.where(f[1] > half, zero, -gi[1]),
+                     wp.where(f[2] > half, zero, -gi[2]))
         rhs[i] = v
         squares += wp.dot(v, v)
     total = wp.tile_sum(wp.tile(squares))
@@ -83,7 +99,7 @@ def _step_summary(du: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d), o
         d = du[i]
         if wp.isfinite(d):
             dot += wp.dot(d, rhs[i])
-            largest = wp.max(largest, wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2]))))
+            largest = wp.max(largest, _largest_component(d))
         else:
             bad += wp.float64(1.0)
     dots = wp.tile_sum(wp.tile(dot))
@@ -106,18 +122,25 @@ def _reduce(kernel, inputs: list, size: int, device) -> list[float]:
 
 
 def max_abs(a: wp.array, b: wp.array | None = None) -> float:
-    """max |a - b| (max |a| without b) over the entries and components of vec3d arrays."""
+    """max |a - b| (max |a| without b) over the entries and components of vec3d arrays; NaN where any entry is NaN,
+    as numpy's."""
     empty = wp.empty(0, dtype=wp.vec3d, device=a.device)
-    return _reduce(_max_abs_difference, [a, b if b is not None else empty], 1, a.device)[0]
+    largest, nans = _reduce(_max_abs_difference, [a, b if b is not None else empty], 2, a.device)
+    return float("nan") if nans else largest
 
 
 def extremes(a: wp.array) -> tuple[float, float]:
-    """(min, max) of a float64 array; (NaN, NaN) where it holds a NaN, as numpy's min and max."""
+    """(min, max) of a float64 array; (NaN, NaN) where it holds a NaN, as numpy's min and max (and, as they do, an
+    error for an empty array)."""
+    if a.shape[0] == 0:
+        raise ValueError("extremes of an empty array")
     return read_extremes(_reduce(_extremes, [a], 3, a.device))
 
 
 def launch_extremes(a: wp.array, out: wp.array) -> None:
     """``extremes`` without the read: [min, max, NaN count] of a into out (3 float64), for ``read_extremes``."""
+    if a.shape[0] == 0:
+        raise ValueError("extremes of an empty array")
     _launch(_extremes, [a], out)
 
 
