@@ -37,7 +37,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
-from transtac_sim.physics.reductions import max_abs
+from transtac_sim.physics.reductions import free_part, max_abs
 from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
 
 
@@ -106,8 +106,7 @@ def _diagonal_magnitudes(offsets: wp.array(dtype=int), row_counts: wp.array(dtyp
 def _free_part(v: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
     """(I - P) v: v with its fixed components set to 0."""
     i = wp.tid()
-    f = fixed[i]
-    out[i] = wp.cw_mul(v[i], wp.vec3d(wp.float64(1.0) - f[0], wp.float64(1.0) - f[1], wp.float64(1.0) - f[2]))
+    out[i] = free_part(v[i], fixed[i])
 
 
 #: lambda of the device's last resort, H + lambda |diag(H)|, tried in turn; at 100 the block-Jacobi-preconditioned

@@ -19,6 +19,16 @@ REDUCTION_THREADS = 256
 
 
 @wp.func
+def free_part(v: wp.vec3d, fixed: wp.vec3d):
+    """v with its fixed components (``fixed`` > 0.5) set to 0, whatever they hold (a NaN or an infinity there is dropped,
+    not multiplied by 0)."""
+    zero = wp.float64(0.0)
+    half = wp.float64(0.5)
+    return wp.vec3d(wp.where(fixed[0] > half, zero, v[0]), wp.where(fixed[1] > half, zero, v[1]),
+                    wp.where(fixed[2] > half, zero, v[2]))
+
+
+@wp.func
 def _largest_component(d: wp.vec3d):
     """max |d_k| over the components of d."""
     return wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2])))
@@ -73,14 +83,9 @@ def _negated_free(g: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), 
                   out: wp.array(dtype=wp.float64)):
     """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); out[0] = |rhs|^2."""
     _, lane = wp.tid()
-    zero = wp.float64(0.0)
-    half = wp.float64(0.5)
     squares = wp.float64(0.0)
     for i in range(lane, g.shape[0], wp.block_dim()):
-        f = fixed[i]
-        gi = g[i]
-        v = wp.vec3d(wp.where(f[0] > half, zero, -gi[0]), wp.where(f[1] > half, zero, -gi[1]),
-                     wp.where(f[2] > half, zero, -gi[2]))
+        v = -free_part(g[i], fixed[i])
         rhs[i] = v
         squares += wp.dot(v, v)
     total = wp.tile_sum(wp.tile(squares))
