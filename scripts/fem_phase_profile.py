@@ -60,7 +60,7 @@ from transtac_sim.simulation import simulate_frames
 
 PHASES = {
     QuasiStaticSolver: ("_gradient", "_energy", "_hessian", "_min_det", "_max_penetration", "_update_lag",
-                        "_move_lag", "_warm_start", "_carried", "_indenter_struct", "_barrier_energy"),
+                        "_move_lag", "_warm_start", "_carried", "_indenter_struct"),
     CoarseSpace: ("update",),  # the coarse level's Galerkin operator and its inverse (coarse_space.py)
     LinearSolver: ("solve", "solve_last", "_cg"),  # solve / solve_last exclusive of _cg: the set-up (sums, projection,
     # preconditioner; on the host path the conversion and factorisation), _cg: the device CG iterations

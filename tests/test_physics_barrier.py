@@ -50,15 +50,15 @@ def test_energy_gradient_and_hessian_agree_where_the_barrier_acts():
     ind = _far_away(solver)
     u0 = _compressed(solver, 0.08)
     solver.u.dof_values.assign(wp.array(u0, dtype=wp.vec3d))
-    assert solver._barrier_energy(solver.u) > 0.0  # the barrier acts here
-    g = solver._gradient(ind).numpy()
+    g = solver._gradient(ind).numpy().copy()  # (on the CPU a view of the kept gradient, which the next call overwrites)
+    assert solver._barrier_acts and float(solver._barrier_sum.numpy()[0]) > 0.0  # the barrier acts here
     H = bsr_to_scipy(solver._hessian(ind, geometric=1.0, clamp=False))
     v = np.random.default_rng(1).standard_normal(u0.shape)
     h = 1e-6
 
     def at(x):
         solver.u.dof_values.assign(wp.array(x, dtype=wp.vec3d))
-        return solver._energy(solver.u, ind), solver._gradient(ind).numpy()
+        return solver._energy(solver.u, ind), solver._gradient(ind).numpy().copy()
 
     (e_plus, g_plus), (e_minus, g_minus) = at(u0 + h * v), at(u0 - h * v)
     np.testing.assert_allclose((e_plus - e_minus) / (2 * h), np.sum(g * v), rtol=1e-5)
@@ -70,10 +70,11 @@ def test_barrier_is_inert_above_its_threshold():
     on, off = _solver(SolverSettings()), _solver(SolverSettings(barrier_det_f=0.0))
     for s in (on, off):
         s.u.dof_values.assign(wp.array(_compressed(s, 0.8), dtype=wp.vec3d))
-    assert on._barrier_energy(on.u) == 0.0
     ind_on, ind_off = _far_away(on), _far_away(off)
+    on._gradient(ind_on)
+    assert not on._barrier_acts and float(on._barrier_sum.numpy()[0]) == 0.0
     assert on._energy(on.u, ind_on) == off._energy(off.u, ind_off)
-    np.testing.assert_array_equal(on._gradient(ind_on).numpy(), off._gradient(ind_off).numpy())
+    np.testing.assert_array_equal(on._gradient(ind_on).numpy(), off._gradient(ind_off).numpy())  # two solvers' own
 
 
 BLOCK = fs.Block(width=6.0, thickness=3.0, h_fine=1.0, fine_half_width=2.0)
@@ -106,8 +107,8 @@ def test_clamped_hessian_is_positive_definite_where_the_barrier_acts(squeeze):
     solver = _solver(SolverSettings())
     ind = _far_away(solver)
     solver.u.dof_values.assign(wp.array(_compressed(solver, squeeze), dtype=wp.vec3d))
-    assert (solver._barrier_energy(solver.u) > 0.0) == (squeeze < 0.1)
     solver._gradient(ind)
+    assert solver._barrier_acts == (squeeze < 0.1)
     free = ~solver._fixed_nodes.reshape(-1)
 
     def extreme_eigenvalues(clamp: bool):
@@ -139,8 +140,8 @@ def test_clamped_hessian_is_positive_semidefinite_in_every_state_tried():
         solver.u.dof_values.assign(wp.array(u, dtype=wp.vec3d))
         if solver._min_det(solver.u) <= 0.0:
             continue
-        barrier_states += solver._barrier_energy(solver.u) > 0.0
         solver._gradient(ind)
+        barrier_states += solver._barrier_acts
         H = bsr_to_scipy(solver._hessian(ind, geometric=1.0, clamp=True)).toarray()
         ev = np.linalg.eigvalsh(0.5 * (H + H.T))
         lowest.append(ev[0] / ev[-1])

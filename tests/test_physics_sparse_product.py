@@ -25,6 +25,7 @@ from transtac_sim.physics.box_mesh import gel_block
 from transtac_sim.physics.device_linear import SHIFTS, fixed_blocks, project_fixed
 from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
 from transtac_sim.physics.linear import LinearSolver
+from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
@@ -153,7 +154,7 @@ def test_device_last_resort_solves_the_shifted_system():
     solver, ind = _pressed_solver()
     linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
     linear.cg_maxiter = 8
-    g = solver._gradient(ind).numpy()
+    g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
     g[solver._fixed_nodes] = 0.0
     rhs = wp.array(-g, dtype=wp.vec3d)
     H = solver._hessian(ind, 0.0, True)
@@ -179,7 +180,7 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
     ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations, else None; its iterations and failures counted."""
     solver, ind = _pressed_solver(device=device)
     linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
-    g = solver._gradient(ind).numpy()
+    g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
     g[solver._fixed_nodes] = 0.0
     H = solver._hessian(ind, 1.0, True)
     assert linear.solve(H, wp.array(-g, dtype=wp.vec3d, device=device), rtol=0.01) is not None
@@ -237,6 +238,60 @@ def test_replayed_energy_and_min_det_read_the_current_values(device):
     assert got[8][0] != got[7][0]  # the moved lag changed the friction energy, and the replay saw it
     if solver.device.is_cuda:  # energy and det F once each, the energy again for the new stiffness and struct
         assert solver._graphs.captures - before == 4
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_replayed_gradient_and_hessian_read_the_current_values(device):
+    """``_gradient`` and ``_hessian`` replay CUDA graphs (replay.py): a replay reads the field's current values, the
+    contact state its gradient stores and friction's lag moved in place; a stiffness change or a new indenter struct
+    makes new graphs; the gradient, the barrier flag and both Hessians (exact and clamped) equal those launched without
+    a graph (the same methods with a graph cache that only launches). The CPU case checks the launch path only."""
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy().copy()
+    replaying = solver._graphs
+
+    def evaluate(which):  # the gradient, the barrier flag, the exact and the clamped Hessians' blocks
+        g = solver._gradient(which).numpy().copy()
+        acts = solver._barrier_acts
+        H = [solver._hessian(which, 1.0, clamp).values.numpy()[:solver._H.nnz].copy() for clamp in (0, 1)]
+        return g, acts, H
+
+    def launched(which):
+        solver._graphs = GraphCache("cpu")  # launches every time, on any device
+        try:
+            return evaluate(which)
+        finally:
+            solver._graphs = replaying
+
+    replaying.clear()
+    before = replaying.captures
+    states = [(k, scale) for k in (1.0, 2.0) for scale in (1.0, 0.5, 0.9, 0.8)]  # launch, capture, then replays
+    got, expected = [], []
+    stiffness = ind.stiffness
+    for k, scale in states:
+        ind.stiffness = k * stiffness  # baked into the graphs: a new key
+        solver.u.dof_values.assign(scale * u0)
+        got.append(evaluate(ind))
+        expected.append(launched(ind))
+    solver.u_lag.dof_values.assign(0.5 * u0)  # friction's lag moved: the contact state changes in place
+    solver._update_lag(ind)
+    got.append(evaluate(ind))
+    expected.append(launched(ind))
+    fresh = solver._indenter_struct(solver._poses, solver._poses)  # a new struct: new keys
+    fresh.stiffness = ind.stiffness
+    for _ in range(3):
+        got.append(evaluate(fresh))
+        expected.append(launched(fresh))
+    for (g, acts, H), (g_ref, acts_ref, H_ref) in zip(got, expected, strict=True):
+        np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-12 * np.abs(g_ref).max())
+        assert acts == acts_ref
+        for A, A_ref in zip(H, H_ref, strict=True):
+            np.testing.assert_allclose(A, A_ref, rtol=0, atol=1e-12 * np.abs(A_ref).max())
+    norms = [float(np.abs(g).sum()) for g, _, _ in got]
+    assert len(set(norms[:8])) == 8 and norms[8] != norms[7]  # every state, and the moved lag, changed the gradient
+    assert not np.array_equal(got[0][2][0], got[0][2][1])  # the clamp acts somewhere: two Hessians
+    if solver.device.is_cuda:  # at least the gradient and both Hessians for each of the 3 keys (stiffness, struct)
+        assert replaying.captures - before >= 9
 
 
 @fem.integrand
@@ -300,7 +355,7 @@ def test_direct_path_solves_to_the_forcing_term_with_its_kept_factorisation():
     from ``guess`` where one is given; a new factorisation solves exactly."""
     solver, ind = _pressed_solver()
     linear = LinearSolver("direct", solver._fixed_nodes, solver.device)
-    g = solver._gradient(ind).numpy()
+    g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
     g[solver._fixed_nodes] = 0.0
     rhs = wp.array(-g, dtype=wp.vec3d)
 
@@ -334,7 +389,7 @@ def test_contact_outside_the_indenters_box_makes_no_query():
     pen = solver._max_penetration(ind)
     assert pen > 0.0 and pen == solver._max_penetration(everywhere)
     assert solver._energy(solver.u, ind) == solver._energy(solver.u, everywhere)
-    np.testing.assert_array_equal(solver._gradient(ind).numpy(), solver._gradient(everywhere).numpy())
+    np.testing.assert_array_equal(solver._gradient(ind).numpy().copy(), solver._gradient(everywhere).numpy())
 
 
 @pytest.mark.parametrize("degree", [1, 2])
@@ -362,7 +417,8 @@ def test_contact_hessian_over_its_sides_equals_the_full_assembly():
     """The contact Hessian integrated over the sides where it can be non-zero (contact_sides.py) equals warp.fem's
     assembly over every touchable side, and that subset is a small part of them."""
     solver, ind = _pressed_solver()
-    subset_hessian = bsr_to_scipy(solver._contact_hessian(ind))
+    solver._hessian(ind, 1.0)
+    subset_hessian = bsr_to_scipy(solver._H_parts["contact"])
     subset = solver._contact_sides.current
     sides = subset.mask.size
     assert 0 < np.count_nonzero(subset.mask) < sides / 4

@@ -83,13 +83,6 @@ class Assembly:
         return {"params": self._params, "stiffness": self.settings.barrier_stiffness,
                 "j_hat": self.settings.barrier_det_f}
 
-    def _barrier_energy(self, u) -> float:
-        """The inversion barrier's energy (elasticity.py) at the 4 check points of each tet; 0 where it is off."""
-        if self.settings.barrier_det_f <= 0.0:
-            return 0.0
-        return float(fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": u},
-                                   values=self._barrier_values()))
-
     def _deviatoric(self) -> DeviatoricTerm:
         """The deviatoric term's constant parts, made on first use. The term is quadratic in u:
 
@@ -139,34 +132,59 @@ class Assembly:
                           values=self._contact_values(ind), output=total, add=True)
 
     def _gradient(self, ind) -> wp.array:
-        """Gradient at self.u; also stores the contact state there, which ``_hessian`` uses."""
+        """Gradient at self.u (N, vec3d per node), written into the kept ``self._g`` (the next call overwrites it);
+        also stores there the contact state and whether the barrier acts, which ``_hessian`` uses. On a GPU its
+        launches are replayed as CUDA graphs (replay.py): every term but the barrier's, with the barrier's energy
+        summed alongside, then, where that energy is not 0 (the usual case), the barrier's gradient."""
+        key = (self.u.dof_values.ptr, id(ind), float(ind.stiffness))
+        self._graphs.run(("gradient", *key), (self.u, ind), lambda: self._gradient_terms(ind))
+        # False where every det F is above the barrier's threshold (its energy, gradient and Hessian are then 0)
+        self._barrier_acts = self.settings.barrier_det_f > 0.0 and float(self._barrier_sum.numpy()[0]) > 0.0
+        if self._barrier_acts:
+            self._graphs.run(("barrier_gradient", self.u.dof_values.ptr), (self.u,), lambda: fem.integrate(
+                elasticity.barrier_gradient_form, quadrature=self._q_det, fields={"u": self.u, "v": self._test},
+                values=self._barrier_values(), output=self._g, add=True))
+        return self._g
+
+    def _gradient_terms(self, ind) -> None:
+        """The gradient's terms but the barrier's into ``self._g``, the barrier's energy into ``self._barrier_sum``
+        (launches only)."""
         vals = {"params": self._params}
-        f = {"u": self.u, "v": self._test}
         dev = self._deviatoric()
-        g = wp.empty_like(dev.c)
+        g = self._g
         dev.product.matvec(self.u.dof_values, dev.c, g, 1.0, 1.0)  # H_dev u + c
-        fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields=f, values=vals,
-                      output=g, add=True)
-        self._barrier_acts = self._barrier_energy(self.u) > 0.0  # False where every det F is above the threshold
-        if self._barrier_acts:  # (the usual case); ``_hessian`` reads it at the same u
-            fem.integrate(elasticity.barrier_gradient_form, quadrature=self._q_det, fields=f,
-                          values=self._barrier_values(), output=g, add=True)
+        fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields={"u": self.u, "v": self._test},
+                      values=vals, output=g, add=True)
+        if self.settings.barrier_det_f > 0.0:
+            self._barrier_sum.zero_()
+            fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": self.u},
+                          values=self._barrier_values(), output=self._barrier_sum, add=True)
         if ind.count:
             fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
                             values=self._contact_values(ind))
             fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
                           values={"st": self._contact_state}, output=g, add=True)
-        return g
 
     def _hessian(self, ind, geometric: float, clamp: int = elasticity.CLAMPED) -> BsrMatrix:
         """The Hessian at self.u, where the last ``_gradient`` was evaluated (whose contact state and barrier flag it
         takes), summed into one kept matrix with the elements' whole sparsity (``self._H``: the
         linear solver may change it in place; the next call overwrites it); ``geometric`` and ``clamp`` select the
-        volumetric term's geometric part (elasticity.py).
+        volumetric term's geometric part (elasticity.py). On a GPU its launches are replayed as a CUDA graph per
+        field, indenter struct, contact stiffness, (geometric, clamp), barrier flag and contact side subset
+        (replay.py); the subset is found first, on the host.
 
         The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and is the sum's start;
         the volumetric part is added tet by tet (volumetric_hessian.py), each other part through its blocks' places in
         the sum (``_sum_slots``), one launch per part instead of a sparse matrix sum."""
+        subset = self._contact_subset(ind) if ind.count else None
+        key = ("hessian", self.u.dof_values.ptr, id(ind), float(ind.stiffness), float(geometric), int(clamp),
+               self._barrier_acts, id(subset))
+        self._graphs.run(key, (self.u, ind, subset), lambda: self._hessian_terms(ind, geometric, clamp, subset))
+        return self._H
+
+    def _hessian_terms(self, ind, geometric: float, clamp: int, subset) -> None:
+        """The Hessian's parts summed into ``self._H`` (launches only, but for the kept matrices, places and set-up
+        made on first use); ``subset``: the contact sides to integrate over, or None."""
         f = {"du": self._trial, "v": self._test}
         H_dev = self._deviatoric().H
         if self._H is None:
@@ -180,10 +198,10 @@ class Assembly:
             fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
                             values=self._barrier_values() | barrier_qp | hessian)
             parts["barrier"] = self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, barrier_qp)
-        if ind.count:
-            contact_part = self._contact_hessian(ind)
-            if contact_part is not None:
-                parts["contact"] = contact_part
+        if subset is not None:
+            parts["contact"] = self._assemble(
+                "contact", contact.contact_hessian_form, subset.quadrature, {"du": subset.trial, "v": subset.test},
+                self._contact_values(ind) | {"qp_base": subset.qp_base, "points": subset.points})
         H = self._H
         wp.copy(H.values, H_dev.values, count=H_dev.nnz)
         if self._volumetric is None:
@@ -192,26 +210,21 @@ class Assembly:
         for name, part in parts.items():
             slots = self._sum_slots(name, part)
             wp.launch(_add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
-        return H
 
-    def _contact_hessian(self, ind) -> BsrMatrix | None:
-        """The contact Hessian, integrated over the sides where it can be non-zero (contact_sides.py: those with a
-        normal or friction stiffness in the contact state of the last ``_gradient``, and their neighbours); None where
-        there are none. Its matrix and places in the sum are made anew when the subset is."""
+    def _contact_subset(self, ind):
+        """The contact sides the Hessian is integrated over (contact_sides.py: those with a normal or friction
+        stiffness in the contact state of the last ``_gradient``, and their neighbours), or None where there are none;
+        where the subset is made anew, its matrix and places in the sum are dropped (made again on first use)."""
         st = self._contact_state
         points = self._q_contact.total_point_count()
-        stiff = wp.empty(points, dtype=wp.int8, device=self.device)
+        stiff = self._stiff_work
         wp.launch(_stiff_points, dim=points, device=self.device,
                   inputs=[st.k_normal, st.k_slip, st.k_slip_dir, ind.count, stiff])
         if self._contact_sides.update(stiff.numpy().astype(bool)):
             self._H_parts.pop("contact", None)
             self._H_slots.pop("contact", None)
         subset = self._contact_sides.current
-        if subset.quadrature is None:  # nothing touches
-            return None
-        return self._assemble("contact", contact.contact_hessian_form, subset.quadrature,
-                              {"du": subset.trial, "v": subset.test},
-                              self._contact_values(ind) | {"qp_base": subset.qp_base, "points": subset.points})
+        return None if subset.quadrature is None else subset  # None: nothing touches
 
     def _assemble(self, name: str, form, quadrature, fields: dict, values: dict) -> BsrMatrix:
         """A Hessian part, assembled into the same matrix each time (``self._H_parts[name]``). Its sparsity does not

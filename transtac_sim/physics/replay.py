@@ -1,16 +1,20 @@
 """Launch sequences replayed as CUDA graphs: the host work of a warp.fem integration (finding its kernel, packing
 its arguments: about half a millisecond each on an H100's host) paid once per graph instead of once per call.
 
-The energy at a trial displacement (the line search's test) and the smallest det F are evaluated many times per load
-step with the same arrays: ``GraphCache.run`` launches the sequence the first time (which also loads its kernels and
-makes any buffer it keeps), captures it the second time it sees the same key and replays the graph from then on. A key
-names what a graph bakes in and can change: the displacement field's address and the values passed by value (the
-indenters' struct, whose poses change each load step, and their contact stiffness, raised inside Newton); the objects
-in ``keep`` are held so that an address in a key is not reused by another array while the graph lives. Every other
-array a graph reads (u_prev, the contact state, the material parameters, the sums it writes) must be made once for the
-solver and only changed in place, as solver.py does: a replay reads their current values. ``clear`` drops every graph (the solver calls it at each load step, whose indenter struct is
-new). On the CPU (no graphs) the sequence is launched every time. press_slide on an H100: the energy 1.11-1.14 -> 0.69 ms per
-evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md ``fem_graph_replay_gpu``).
+The energy at a trial displacement (the line search's test), the smallest det F, and Newton's gradient and Hessian are
+evaluated many times per load step with the same arrays: ``GraphCache.run`` launches the sequence the first time (which
+also loads its kernels and makes any buffer or matrix it keeps), captures it the second time it sees the same key and
+replays the graph from then on. A key names what a graph bakes in and can change: the displacement field's address and
+the values passed by value (the indenters' struct, whose poses change each load step, their contact stiffness, raised
+inside Newton, and for the Hessian its (geometric, clamp) pair, the barrier flag and the contact side subset, whose
+matrix is made anew with it); the objects in ``keep`` are held so that an address in a key is not reused by another
+object while the graph lives. Every other array a graph reads (u_prev, the contact state, the material parameters,
+the sums and matrices it writes) must be made once for the solver and only changed in place, as solver.py and
+assembly.py do: a replay reads their current values. ``clear`` drops every graph (the solver calls it at each load
+step, whose indenter struct is new). On the CPU (no graphs) the sequence is launched every time. press_slide on an
+H100: the energy 1.11-1.14 -> 0.69 ms per evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md
+``fem_graph_replay_gpu``); then on an H200 the gradient 1.6 -> 0.9 ms, the Hessian 2.0 -> 1.4-1.5 ms, the frames
+0.90-0.92x (``fem_gradient_hessian_replay_gpu``).
 """
 
 from __future__ import annotations

@@ -135,7 +135,10 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
         self._det_work = (wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device),
                           wp.empty(3, dtype=wp.float64, device=self.device))  # ``_min_det``'s det F and extremes
-        self._graphs = GraphCache(self.device)  # ``_energy`` and ``_min_det`` as CUDA graphs (replay.py)
+        self._g = wp.empty_like(self.u.dof_values)  # ``_gradient``'s result (N per node)
+        self._barrier_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # the barrier's energy at ``_gradient``
+        self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
+        self._graphs = GraphCache(self.device)  # energy, det F, gradient and Hessian as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._volumetric = None  # the tet-by-tet volumetric Hessian's set-up (volumetric_hessian.py), made on first use
