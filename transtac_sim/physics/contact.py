@@ -41,6 +41,8 @@ class Indenters:
     max_dist: wp.array(dtype=wp.float64)  # bounding radius of each mesh (mm)
     box_lo: wp.array(dtype=wp.vec3d)  # each mesh's bounding box in its local frame (mm): no query outside it
     box_hi: wp.array(dtype=wp.vec3d)
+    normals: wp.array(dtype=wp.vec3d)  # every mesh's ``RigidIndenter.feature_normals``, 7 per face, one after another
+    normals_start: wp.array(dtype=int)  # where each mesh's start in ``normals``
     friction: wp.array(dtype=wp.float64)
     count: int
     stiffness: wp.float64  # penalty k (N/mm^3)
@@ -86,17 +88,51 @@ def _inside_face(hit: wp.MeshQueryPoint, tol: wp.float32):
 
 
 @wp.func
+def _feature_side(ind: Indenters, i: int, hit: wp.MeshQueryPoint, q: wp.vec3d, tol: wp.float32):
+    """Which side of indenter i's mesh q (local frame) lies on, from its closest point c on face ``hit.face`` near
+    the face's boundary (a barycentric weight <= ``tol``): +1 outside, -1 inside, 0 undecided. c lies on the face, on
+    an edge (its opposite weight about 0) or at a vertex (the other two about 0), and each of these features consistent
+    with the weights gives a side, (q - c) . (its pseudo-normal) (``RigidIndenter.feature_normals``), exact for the
+    feature that holds c (Baerentzen & Aanaes 2005); decided where all of them agree, else 0."""
+    w = wp.vec3(hit.u, hit.v, wp.float32(1.0) - hit.u - hit.v)
+    c = _f(w[0]) * _point(ind.mesh[i], hit.face, 0) + _f(w[1]) * _point(ind.mesh[i], hit.face, 1) \
+        + _f(w[2]) * _point(ind.mesh[i], hit.face, 2)
+    d = q - c
+    base = ind.normals_start[i] + 7 * hit.face
+    lowest = wp.dot(d, ind.normals[base])  # the face
+    highest = lowest
+    for k in range(3):
+        if w[k] <= tol:  # the edge opposite corner k
+            s = wp.dot(d, ind.normals[base + 4 + k])
+            lowest = wp.min(lowest, s)
+            highest = wp.max(highest, s)
+        if w[(k + 1) % 3] <= tol and w[(k + 2) % 3] <= tol:  # corner k
+            s = wp.dot(d, ind.normals[base + 1 + k])
+            lowest = wp.min(lowest, s)
+            highest = wp.max(highest, s)
+    side = 0
+    if lowest > _f(0.0):
+        side = 1
+    elif highest < _f(0.0):
+        side = -1
+    return side
+
+
+@wp.func
 def penetration(ind: Indenters, i: int, x: wp.vec3d):
     """(g, n): penetration depth (mm, 0 if outside) and push-out direction in the gel frame.
 
     Inside a face (the usual case) g is the distance to the face plane along its outward normal,
     computed in float64; near an edge or a vertex of the indenter n points to the closest point. A point outside
     the mesh's bounding box is outside the mesh: (0, +z) without a mesh query. Inside or outside: where the closest
-    point lies inside a face, the side of that face's plane (exact for a closed mesh); at an edge or a vertex, the
-    winding number (which looks at the whole mesh, so it is the expensive query: the contact kernels take 545 instead
-    of 940 us on press_slide on an H100, BENCHMARKS.md ``fem_contact_query_gpu``). Warp's pseudo-normal sign alone
-    (``mesh_query_point_sign_normal``) was tried and, in a review's denser sampling, put a few points deep inside the
-    coin and the pocket block outside: it adds the normals of every face within a tolerance of the closest distance."""
+    point lies inside a face, the side of that face's plane (exact for a closed mesh); at an edge or a vertex, the side
+    of that feature's angle-weighted pseudo-normal (``_feature_side``, exact for a closed mesh), checked against
+    every feature that the closest point's float32 barycentric weights cannot rule out, and where those disagree the
+    winding number (which looks at the whole mesh, so it is the expensive query: the contact kernels took 545 against
+    185 us on press_slide on an H100 with the winding number at every edge and vertex and none, BENCHMARKS.md
+    ``fem_contact_query_gpu``). Warp's pseudo-normal sign (``mesh_query_point_sign_normal``) was tried and, in a
+    review's denser sampling, put a few points deep inside the coin and the pocket block outside: it adds the normals
+    of every face within a tolerance of the closest distance instead of taking the closest feature's."""
     q = _transform(ind.pose_inv[i], x)
     g = _f(0.0)
     n = wp.vec3d(_f(0.0), _f(0.0), _f(1.0))
@@ -117,21 +153,26 @@ def penetration(ind: Indenters, i: int, x: wp.vec3d):
         else:
             g = _f(0.0)
         return g, n
-    hit = wp.mesh_query_point_sign_winding_number(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
-    if hit.result and hit.sign < 0.0:
+    side = _feature_side(ind, i, hit, q, edge_tol)
+    if side > 0:
+        return g, n
+    if side == 0:  # undecided: the winding number, with its own closest point
+        hit = wp.mesh_query_point_sign_winding_number(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
+        if not (hit.result and hit.sign < 0.0):
+            return g, n
         p0, nf = _face_plane(ind.mesh[i], hit.face)
-        if _inside_face(hit, edge_tol):
-            g = wp.dot(p0 - q, nf)
-            n = _rotate(ind.pose[i], nf)
+    if _inside_face(hit, edge_tol):
+        g = wp.dot(p0 - q, nf)
+        n = _rotate(ind.pose[i], nf)
+    else:
+        cf = wp.mesh_eval_position(ind.mesh[i], hit.face, hit.u, hit.v)
+        d = wp.vec3d(_f(cf[0]), _f(cf[1]), _f(cf[2])) - q
+        g = wp.length(d)
+        if g > _f(1.0e-9):
+            n = _rotate(ind.pose[i], d / g)
         else:
-            cf = wp.mesh_eval_position(ind.mesh[i], hit.face, hit.u, hit.v)
-            d = wp.vec3d(_f(cf[0]), _f(cf[1]), _f(cf[2])) - q
-            g = wp.length(d)
-            if g > _f(1.0e-9):
-                n = _rotate(ind.pose[i], d / g)
-            else:
-                n = _rotate(ind.pose[i], nf)
-        g = wp.max(g, _f(0.0))
+            n = _rotate(ind.pose[i], nf)
+    g = wp.max(g, _f(0.0))
     return g, n
 
 

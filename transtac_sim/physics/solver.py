@@ -130,6 +130,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
 
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
+        self._normals: dict[tuple, tuple[wp.array, wp.array]] = {}  # ``_feature_normals`` by indenters chosen
         self._poses: list[np.ndarray] | None = None
         self._barrier_acts = False  # some det F below the barrier's threshold at the last ``_gradient``'s u
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
@@ -215,6 +216,16 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         e_top = 3.0 * float(np.max(self._params_np[top_tets, 0]))
         return self.settings.stiffness_factor * e_top / (h / self.settings.degree)
 
+    def _feature_normals(self, which: tuple[int, ...]) -> tuple[wp.array, wp.array]:
+        """The indenters ``which``'s face, vertex and edge normals (``RigidIndenter.feature_normals``, 7 per face, one
+        mesh after another) and where each mesh's start, on the device; made once per choice."""
+        if which not in self._normals:
+            normals = [self.indenters[i].feature_normals() for i in which]
+            self._normals[which] = (
+                wp.array(np.concatenate(normals).reshape(-1, 3), dtype=wp.vec3d, device=self.device),
+                wp.array(np.cumsum([0] + [7 * len(n) for n in normals[:-1]]), dtype=int, device=self.device))
+        return self._normals[which]
+
     def _indenter_struct(self, poses, prev_poses, which: list[int] | None = None) -> contact.Indenters:
         """The indenters ``which`` (default all) at ``poses``, having moved from ``prev_poses`` (one each)."""
         which = list(range(len(self.indenters))) if which is None else which
@@ -232,6 +243,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
                             dtype=wp.vec3d, device=dev)
         s.box_hi = wp.array([i.vertices_mm.max(axis=0) + d for i, d in zip(chosen, pad, strict=True)],
                             dtype=wp.vec3d, device=dev)
+        s.normals, s.normals_start = self._feature_normals(tuple(which))
         s.friction = wp.array([i.friction for i in chosen], dtype=wp.float64, device=dev)
         s.count = len(chosen)
         s.stiffness = self.contact_stiffness
