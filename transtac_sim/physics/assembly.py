@@ -133,37 +133,41 @@ class Assembly:
 
     def _gradient(self, ind) -> wp.array:
         """Gradient at self.u (N, vec3d per node), written into the kept ``self._g`` (the next call overwrites it);
-        also stores there the contact state and whether the barrier acts, which ``_hessian`` uses. On a GPU its
-        launches are replayed as CUDA graphs (replay.py): every term but the barrier's, with the barrier's energy
-        summed alongside, then, where that energy is not 0 (the usual case), the barrier's gradient."""
-        key = (self.u.dof_values.ptr, id(ind), float(ind.stiffness))
-        self._graphs.run(("gradient", *key), (self.u, ind), lambda: self._gradient_terms(ind))
+        also stores there the contact state and whether the barrier acts, which ``_hessian`` uses. The terms are added
+        in the order of the energy (elastic, barrier, contact). On a GPU the launches are replayed as CUDA graphs
+        (replay.py): the elastic terms with the barrier's energy summed alongside, then (where that energy, read by the
+        host, is not 0: the usual case) the barrier's gradient, then the contact state and gradient."""
+        u = self.u
+        key = (u.dof_values.ptr, id(ind), float(ind.stiffness))
+        self._graphs.run(("elastic_gradient", u.dof_values.ptr), (u,), self._elastic_gradient_terms)
         # False where every det F is above the barrier's threshold (its energy, gradient and Hessian are then 0)
         self._barrier_acts = self.settings.barrier_det_f > 0.0 and float(self._barrier_sum.numpy()[0]) > 0.0
         if self._barrier_acts:
-            self._graphs.run(("barrier_gradient", self.u.dof_values.ptr), (self.u,), lambda: fem.integrate(
-                elasticity.barrier_gradient_form, quadrature=self._q_det, fields={"u": self.u, "v": self._test},
+            self._graphs.run(("barrier_gradient", u.dof_values.ptr), (u,), lambda: fem.integrate(
+                elasticity.barrier_gradient_form, quadrature=self._q_det, fields={"u": u, "v": self._test},
                 values=self._barrier_values(), output=self._g, add=True))
+        if ind.count:
+            self._graphs.run(("contact_gradient", *key), (u, ind), lambda: self._contact_gradient_terms(ind))
         return self._g
 
-    def _gradient_terms(self, ind) -> None:
-        """The gradient's terms but the barrier's into ``self._g``, the barrier's energy into ``self._barrier_sum``
+    def _elastic_gradient_terms(self) -> None:
+        """The deviatoric and volumetric gradient into ``self._g``, the barrier's energy into ``self._barrier_sum``
         (launches only)."""
-        vals = {"params": self._params}
         dev = self._deviatoric()
-        g = self._g
-        dev.product.matvec(self.u.dof_values, dev.c, g, 1.0, 1.0)  # H_dev u + c
+        dev.product.matvec(self.u.dof_values, dev.c, self._g, 1.0, 1.0)  # H_dev u + c
         fem.integrate(elasticity.volumetric_gradient_form, quadrature=self._q_vol, fields={"u": self.u, "v": self._test},
-                      values=vals, output=g, add=True)
+                      values={"params": self._params}, output=self._g, add=True)
         if self.settings.barrier_det_f > 0.0:
             self._barrier_sum.zero_()
             fem.integrate(elasticity.barrier_energy_form, quadrature=self._q_det, fields={"u": self.u},
                           values=self._barrier_values(), output=self._barrier_sum, add=True)
-        if ind.count:
-            fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
-                            values=self._contact_values(ind))
-            fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
-                          values={"st": self._contact_state}, output=g, add=True)
+
+    def _contact_gradient_terms(self, ind) -> None:
+        """The contact state at self.u and the contact gradient added into ``self._g`` (launches only)."""
+        fem.interpolate(contact.state_form, at=self._q_contact, fields=self._contact_fields(self.u),
+                        values=self._contact_values(ind))
+        fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
+                      values={"st": self._contact_state}, output=self._g, add=True)
 
     def _hessian(self, ind, geometric: float, clamp: int = elasticity.CLAMPED) -> BsrMatrix:
         """The Hessian at self.u, where the last ``_gradient`` was evaluated (whose contact state and barrier flag it

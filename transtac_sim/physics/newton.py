@@ -222,7 +222,7 @@ class NewtonSteps:
     def _newton_iteration_cap(self) -> int:
         """``max_newton_iterations``, or its default for the linear solver in use (settings.py)."""
         cap = self.settings.max_newton_iterations
-        return cap if cap is not None else (40 if self._linear.method == "direct" else 120)
+        return cap if cap is not None else (80 if self._linear.method == "direct" else 120)
 
     def _hessian_ladder(self) -> tuple[tuple[float, int], ...]:
         """(geometric, clamp) of the Hessians tried in turn for a Newton step: the exact one, the clamped one, then

@@ -20,11 +20,14 @@ class IndenterStartsInsideGel(ValueError):
 class SolverSettings:
     degree: int = 2  # element order (1: linear tets, 2: quadratic tets)
     newton_tol_mm: float = 1.0e-5  # converged when max |Newton step| is below this
-    # per (sub)step; None: 40 with the direct solver, 120 with CG. On the device path (CG, the clamped Hessian
+    # per (sub)step; None: 80 with the direct solver, 120 with CG. On the device path (CG, the clamped Hessian
     # where the exact one is not positive definite) Newton converges linearly where the inversion barrier acts; a sub-step starts that work again from the last
     # converged state, so a higher cap is cheaper there: a cube edge pressed 1.5 mm (train_random sequence 4,
     # frames 0-3, one H100) took 38.7 s of physics with 120 against 101.8 s with 40 (16 sub-steps in frame 2;
-    # measured when each halving started the frame again, before sub-steps went on from the last converged one)
+    # measured when each halving started the frame again, before sub-steps went on from the last converged one).
+    # The host path's 40 was raised to 80 for the same reason: the stability table took 279 against 357 s on the
+    # 2-core CPU, no case needed a sub-step (up to 4 with 40), and a marginal slide that failed at every sub-step
+    # with 40 converged (BENCHMARKS.md ``fem_host_newton_cap``)
     max_newton_iterations: int | None = None
     max_substep_halvings: int = 5  # the smallest sub-step: 1/2**5 of the frame's motion (solver.py)
     # "direct" (CHOLMOD/SuperLU on the host), "cg" (Warp, on the device); "auto": cg on a GPU, else direct
