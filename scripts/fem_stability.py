@@ -5,7 +5,7 @@ face bonded) and reports: outcome (converged / the solver's error), NaN check, m
 frames, the largest penetration and sub-step count of any frame, Newton iterations and seconds.
 The full run writes a markdown table into BENCHMARKS.md (section ``fem_stability``).
 
-    .venv/bin/python scripts/fem_stability.py [--quick] [--device cpu|cuda] [--only NAME ...]
+    .venv/bin/python scripts/fem_stability.py [--quick] [--device cpu|cuda] [--only NAME ...] [--max-newton-iterations N]
 
 ``--quick`` uses a coarser mesh and prints the table without writing BENCHMARKS.md.
 The case definitions and ``run_case`` are shared with tests/test_physics_stability.py (which runs them
@@ -133,7 +133,7 @@ class CaseResult:
         return self.error is None and all(f["converged"] for f in self.frames)
 
 
-def build_solver(case: Case, block: Block, device: str = "cpu"):
+def build_solver(case: Case, block: Block, device: str = "cpu", max_newton_iterations: int | None = None):
     V, T = block.mesh()
     materials = [ElasticMaterial(case.young_mpa, case.poisson)]
     material_index = None
@@ -146,17 +146,19 @@ def build_solver(case: Case, block: Block, device: str = "cpu"):
         in_gel[T[material_index == 0].ravel()] = True
         backing_vertices = ~in_gel  # vertices of backing tets only (the interface belongs to the gel)
     ind = make_indenter(case.shape, block.thickness, case.friction)
-    settings = SolverSettings(degree=block.degree)
+    settings = SolverSettings(degree=block.degree, max_newton_iterations=max_newton_iterations)
     solver = QuasiStaticSolver(V, T, materials, [ind], settings, device=device, material_index=material_index)
     return solver, V, ind, backing_vertices
 
 
-def run_case(case: Case, block: Block, device: str = "cpu", verbose: bool = False) -> CaseResult:
-    """Run one case; a SolverDidNotConverge / IndenterStartsInsideGel ends it and is kept in ``error``.
+def run_case(case: Case, block: Block, device: str = "cpu", verbose: bool = False,
+             max_newton_iterations: int | None = None) -> CaseResult:
+    """Run one case (``max_newton_iterations``: replaces the solver's default cap per (sub)step); a
+    SolverDidNotConverge / IndenterStartsInsideGel ends it and is kept in ``error``.
 
     Per frame: converged, iterations, substeps, min_det_f, max_penetration_mm, seconds, finite (no NaN
     in the displacement), fz, fx (N, on the gel), max_u_mm (all vertices), max_u_backing_mm."""
-    solver, V, ind, backing = build_solver(case, block, device)
+    solver, V, ind, backing = build_solver(case, block, device, max_newton_iterations)
     out = CaseResult(case, dofs=3 * len(solver.nodal_displacement()))
     start, poses = trajectory(case, ind, block.thickness)
     t0 = time.perf_counter()
@@ -248,6 +250,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="coarse mesh; print only, BENCHMARKS.md untouched")
     parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these")
     parser.add_argument("-v", "--verbose", action="store_true", help="print every frame")
+    parser.add_argument("--max-newton-iterations", type=int, default=None,
+                        help="Newton's cap per (sub)step instead of the solver's default; prints only, BENCHMARKS.md untouched")
     args = parser.parse_args()
 
     block = QUICK if args.quick else FULL
@@ -264,7 +268,7 @@ def main() -> None:
             same_as, r = done[case.key()]
         else:
             print(f"{case.name} ...", flush=True)
-            r = run_case(case, block, args.device, verbose=args.verbose)
+            r = run_case(case, block, args.device, verbose=args.verbose, max_newton_iterations=args.max_newton_iterations)
             done[case.key()] = (case.name, r)
         results.append(r)
         line = table_row(case.name, r, block.thickness, same_as)
@@ -272,7 +276,7 @@ def main() -> None:
         lines.append(line)
     total = time.perf_counter() - t_all
     print(f"total {total:.0f} s", flush=True)
-    if args.quick or args.only:
+    if args.quick or args.only or args.max_newton_iterations is not None:
         return
     head = (
         f"Machine: {machine_name(args.device)}. Command: `.venv/bin/python scripts/fem_stability.py"
