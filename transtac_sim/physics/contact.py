@@ -42,7 +42,7 @@ class Indenters:
     box_lo: wp.array(dtype=wp.vec3d)  # each mesh's bounding box in its local frame (mm): no query outside it
     box_hi: wp.array(dtype=wp.vec3d)
     normals: wp.array(dtype=wp.vec3d)  # every mesh's ``RigidIndenter.feature_normals``, 7 per face, one after another
-    normals_start: wp.array(dtype=int)  # where each mesh's start in ``normals``
+    normals_start: wp.array(dtype=int)  # where each mesh's normals start in ``normals``
     friction: wp.array(dtype=wp.float64)
     count: int
     stiffness: wp.float64  # penalty k (N/mm^3)
