@@ -3,7 +3,7 @@
 Each case presses (and possibly slides) a rigid indenter into a gel block (graded P2 mesh, the bottom
 face bonded) and reports: outcome (converged / the solver's error), NaN check, min det F over all
 frames, the largest penetration and sub-step count of any frame, Newton iterations and seconds.
-The full run writes a markdown table into BENCHMARKS.md (section ``fem_stability``).
+The full run writes a markdown table into BENCHMARKS.md (section ``fem_stability``; ``fem_stability_gpu`` with a GPU).
 
     .venv/bin/python scripts/fem_stability.py [--quick] [--device cpu|cuda] [--only NAME ...] [--max-newton-iterations N]
 
@@ -280,14 +280,16 @@ def main() -> None:
         return
     head = (
         f"Machine: {machine_name(args.device)}. Command: `.venv/bin/python scripts/fem_stability.py"
-        f"{' --device ' + args.device if args.device != 'cpu' else ''}` ({total / 60:.0f} min in all). "
+        f"{' --device ' + args.device if args.device != 'cpu' else ''}` "
+        f"({f'{total / 60:.0f} min' if total >= 120 else f'{total:.0f} s'} in all). "
         f"Gel block {block.width:g} x {block.width:g} x {block.thickness:g} mm, P{block.degree} tets "
         f"(h = {block.h_fine} mm on the central {2 * block.fine_half_width:g} mm, growing by {block.growth} "
         f"outwards; {len(V)} vertices, {r.dofs} dofs), bottom face bonded, default SolverSettings. Base case: "
         f"E 0.5 MPa, nu 0.45, sphere of radius 3 mm pressed to 30 % of the thickness (1.5 mm); every other case "
         f"changes one thing. Depths are below the first contact; forces are on the gel (pressing: Fz < 0)."
     )
-    update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", "fem_stability",
+    section = "fem_stability" if args.device == "cpu" else "fem_stability_gpu"
+    update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", section,
                    head + "\n\n" + "\n".join(lines) + "\n\n" + summary(results))
 
 
