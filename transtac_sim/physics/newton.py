@@ -59,7 +59,7 @@ and step estimate stay on the device and are reduced there to the scalars this l
 ``fem_device_reductions_gpu``); the step estimate is solved to a loose tolerance within a larger cap instead of running
 into its cap and being thrown away, with friction's lag then moved at a closer remaining step (``LAG_MOVE_RATIOS``;
 ``fem_step_estimate``); the line search's energy and det F replay CUDA graphs (replay.py; ``fem_graph_replay_gpu``), and
-so do the gradient and Hessian assembly (0.90-0.92x on an H200, ``fem_gradient_hessian_replay_gpu``).
+so do the gradient and Hessian assembly (0.90-0.93x on an H200, ``fem_gradient_hessian_replay_gpu``).
 """
 
 from __future__ import annotations

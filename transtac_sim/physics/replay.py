@@ -14,7 +14,7 @@ assembly.py do: a replay reads their current values. ``clear`` drops every graph
 step, whose indenter struct is new). On the CPU (no graphs) the sequence is launched every time. press_slide on an
 H100: the energy 1.11-1.14 -> 0.69 ms per evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md
 ``fem_graph_replay_gpu``); then on an H200 the gradient 1.6 -> 0.9 ms, the Hessian 2.0 -> 1.4-1.5 ms, the frames
-0.90-0.92x (``fem_gradient_hessian_replay_gpu``).
+0.90-0.93x (``fem_gradient_hessian_replay_gpu``).
 """
 
 from __future__ import annotations
