@@ -138,7 +138,6 @@ class Assembly:
         (replay.py): the elastic terms with the barrier's energy summed alongside, then (where that energy, read by the
         host, is not 0: the usual case) the barrier's gradient, then the contact state and gradient."""
         u = self.u
-        key = (u.dof_values.ptr, id(ind), float(ind.stiffness))
         self._graphs.run(("elastic_gradient", u.dof_values.ptr), (u,), self._elastic_gradient_terms)
         # False where every det F is above the barrier's threshold (its energy, gradient and Hessian are then 0)
         self._barrier_acts = self.settings.barrier_det_f > 0.0 and float(self._barrier_sum.numpy()[0]) > 0.0
@@ -147,7 +146,8 @@ class Assembly:
                 elasticity.barrier_gradient_form, quadrature=self._q_det, fields={"u": u, "v": self._test},
                 values=self._barrier_values(), output=self._g, add=True))
         if ind.count:
-            self._graphs.run(("contact_gradient", *key), (u, ind), lambda: self._contact_gradient_terms(ind))
+            self._graphs.run(("contact_gradient", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind),
+                             lambda: self._contact_gradient_terms(ind))
         return self._g
 
     def _elastic_gradient_terms(self) -> None:
