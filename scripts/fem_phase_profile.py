@@ -23,7 +23,8 @@ residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/spars
 CG solve makes its own work vectors, state and graph, as before commit 31c75b7; x, the block-Jacobi inverses and the
 float32 blocks stay kept, physics/device_linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
-``--clamped-only``; the two flags together are the device path before definite_cg.py).
+``--clamped-only``; the two flags together are the device path before definite_cg.py), ``--cg-unroll N`` (CG
+iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unrolled_gpu``).
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
@@ -50,7 +51,7 @@ import warp as wp
 from warp.optim.linear import aslinearoperator, cg
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import QuasiStaticSolver, device_linear, newton, sparse_product
+from transtac_sim.physics import QuasiStaticSolver, definite_cg, device_linear, newton
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
@@ -135,9 +136,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
          float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
          fresh_cg_graphs: bool = typer.Option(False, help="no workspace kept between device CG solves"),
-         spmv_lanes: int | None = typer.Option(None, min=1, help="threads per block row of the CG's product"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
+         cg_unroll: int = typer.Option(definite_cg.UNROLL, min=1, help="definite_cg.UNROLL: CG iterations per pass "
+                                                                      "of its conditional CUDA graph loop"),
          coarse_cell_mm: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
          coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
@@ -159,11 +161,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: float64_operator(H)
     if warp_cg:
         device_linear.definite_cg = _warp_cg
+    definite_cg.UNROLL = cg_unroll
     if fresh_cg_graphs:
         kept_cg = device_linear.definite_cg
         device_linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
-    if spmv_lanes is not None:
-        sparse_product.LANES = spmv_lanes
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
     reference = np.load(compare_to) if compare_to else None

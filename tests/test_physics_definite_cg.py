@@ -1,4 +1,5 @@
-"""The device CG that stops at non-positive curvature (physics/definite_cg.py), on the CPU, against scipy."""
+"""The device CG that stops at non-positive curvature (physics/definite_cg.py), against scipy and a numpy PCG; on the CPU,
+and on a GPU where there is one (the device tool, not CI)."""
 
 import numpy as np
 import pytest
@@ -6,10 +7,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
 
-from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
+from transtac_sim.physics.definite_cg import UNROLL, BlockJacobi, CgWorkspace, definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
 
 N = 200  # 3-vectors
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
 
 def _laplacian_3d(shift: float) -> sp.csr_matrix:
@@ -67,6 +69,43 @@ def test_definite_cg_reports_its_iteration_cap():
     assert not result.converged and not result.not_definite and result.iterations == 5
 
 
+def _numpy_pcg(A: sp.csr_matrix, b: np.ndarray, iterations: int) -> np.ndarray:
+    """x after ``iterations`` steps of block-Jacobi PCG from 0 (the recurrence of definite_cg.py's docstring)."""
+    blocks = [np.linalg.inv(A[3 * i:3 * i + 3, 3 * i:3 * i + 3].toarray()) for i in range(N)]
+
+    def precondition(v):
+        return np.concatenate([blocks[i] @ v[3 * i:3 * i + 3] for i in range(N)])
+
+    x, r = np.zeros_like(b), b.copy()
+    z = precondition(r)
+    p, rz = z.copy(), r @ z
+    for _ in range(iterations):
+        q = A @ p
+        alpha = rz / (p @ q)
+        x, r = x + alpha * p, r - alpha * q
+        z = precondition(r)
+        rz, rz_old = r @ z, rz
+        p = z + rz / rz_old * p
+    return x
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_iterations_after_the_cap_change_nothing(device: str):
+    """Stopped by its cap at every count up to two of the CUDA loop's passes (``UNROLL`` iterations each, the ones
+    after the stop within a pass run as no-ops), x is the k-th PCG iterate: none of those no-op iterations moves it."""
+    A = _laplacian_3d(0.0)
+    H = _warp_bsr(A, device)
+    b = np.random.default_rng(5).standard_normal(3 * N)
+    M = BlockJacobi(H)
+    for cap in range(1, 2 * UNROLL + 2):
+        x = wp.zeros(N, dtype=wp.vec3d, device=device)
+        result = definite_cg(block_row_operator(H), wp.array(b.reshape(N, 3), dtype=wp.vec3d, device=device), x,
+                             1e-14, cap, M)
+        assert result.iterations == cap and not result.converged, (cap, result)
+        expected = _numpy_pcg(A, b, cap)
+        np.testing.assert_allclose(x.numpy().reshape(-1), expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+
 def test_block_jacobi_applies_the_inverse_diagonal_blocks():
     A = _laplacian_3d(0.0)
     M = BlockJacobi(_warp_bsr(A))
@@ -76,9 +115,6 @@ def test_block_jacobi_applies_the_inverse_diagonal_blocks():
     diagonal = np.stack([A[3 * i:3 * i + 3, 3 * i:3 * i + 3].toarray() for i in range(N)])
     expected = 0.5 * np.linalg.solve(diagonal, x[:, :, None])[:, :, 0] + 2.0 * y
     np.testing.assert_allclose(z.numpy(), expected, rtol=1e-12, atol=1e-12)
-
-
-DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
 
 @pytest.mark.parametrize("device", DEVICES)

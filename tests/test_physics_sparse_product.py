@@ -49,39 +49,43 @@ def _pressed_solver(degree: int = 2, device: str = "cpu"):
     return solver, ind
 
 
-def _pressed_hessian():
+def _pressed_hessian(device: str = "cpu"):
     """The summed Newton Hessian (elastic, barrier where it acts, contact with friction) of ``_pressed_solver``, as
     the device CG receives it."""
-    solver, ind = _pressed_solver()
+    solver, ind = _pressed_solver(device=device)
     return wp.sparse.bsr_copy(solver._hessian(ind, 1.0, True))
 
 
-def test_block_row_product_matches_scipy():
-    H = _pressed_hessian()
+@pytest.mark.parametrize("device", DEVICES)  # CUDA: several block rows per thread group, the last one part-filled
+def test_block_row_product_matches_scipy(device):
+    H = _pressed_hessian(device)
+    assert H.nrow % 8 != 0  # a last group of rows that does not fill its thread group
     A = bsr_to_scipy(H)
     assert A.nnz > 0 and abs(A - A.T).max() < 1e-9 * abs(A).max()  # a symmetric Newton matrix with contact terms
     rng = np.random.default_rng(1)
     x, y = rng.standard_normal((2, H.nrow, 3))
-    z = wp.zeros(H.nrow, dtype=wp.vec3d)
-    block_row_operator(H).matvec(wp.array(x, dtype=wp.vec3d), wp.array(y, dtype=wp.vec3d), z, 0.7, -1.3)
+    z = wp.zeros(H.nrow, dtype=wp.vec3d, device=device)
+    block_row_operator(H).matvec(wp.array(x, dtype=wp.vec3d, device=device), wp.array(y, dtype=wp.vec3d, device=device),
+                                 z, 0.7, -1.3)
     expected = 0.7 * (A @ x.reshape(-1)) - 1.3 * y.reshape(-1)
     np.testing.assert_allclose(z.numpy().reshape(-1), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
-    z2 = wp.array(y, dtype=wp.vec3d)  # beta = 0 ignores y, and z may be y
-    block_row_operator(H).matvec(wp.array(x, dtype=wp.vec3d), z2, z2, 1.0, 0.0)
+    z2 = wp.array(y, dtype=wp.vec3d, device=device)  # beta = 0 ignores y, and z may be y
+    block_row_operator(H).matvec(wp.array(x, dtype=wp.vec3d, device=device), z2, z2, 1.0, 0.0)
     np.testing.assert_allclose(z2.numpy().reshape(-1), A @ x.reshape(-1), rtol=1e-12,
                                atol=1e-12 * np.abs(A @ x.reshape(-1)).max())
 
 
-def test_single_precision_product_reads_the_matrix_rounded_to_float32():
+@pytest.mark.parametrize("device", DEVICES)
+def test_single_precision_product_reads_the_matrix_rounded_to_float32(device):
     """The device CG's product (``single_precision``) equals scipy's product with the blocks rounded to float32 (its
     arithmetic is float64), and differs from the float64 product by no more than that rounding allows."""
-    H = _pressed_hessian()
+    H = _pressed_hessian(device)
     A = bsr_to_scipy(H)
     rounded = A.astype(np.float32).astype(np.float64)
     assert abs(rounded - A).max() > 0.0  # the rounding does change entries
     x = np.random.default_rng(2).standard_normal((H.nrow, 3))
-    z = wp.zeros(H.nrow, dtype=wp.vec3d)
-    block_row_operator(H, single_precision=True).matvec(wp.array(x, dtype=wp.vec3d), z, z, 1.0, 0.0)
+    z = wp.zeros(H.nrow, dtype=wp.vec3d, device=device)
+    block_row_operator(H, single_precision=True).matvec(wp.array(x, dtype=wp.vec3d, device=device), z, z, 1.0, 0.0)
     expected = rounded @ x.reshape(-1)
     np.testing.assert_allclose(z.numpy().reshape(-1), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
     bound = 2.0 ** -24 * (abs(A) @ np.abs(x.reshape(-1)))  # each entry within 2^-24 of itself

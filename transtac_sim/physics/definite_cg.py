@@ -22,7 +22,10 @@ otherwise the captured iteration is launched ``CHECK_EVERY`` times between host 
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
 entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
 the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
-iteration cap) is one small float64 array, so the kernels of a stopped solve do nothing. Dot products are block-wise tile sums
+iteration cap) is one small float64 array, so the iterations of a stopped solve change nothing (x, r and p keep their
+values). A pass of the captured loop therefore runs ``UNROLL`` iterations, and a solve pays for at most UNROLL - 1
+iterations after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
+(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums
 added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
 A ``CgWorkspace`` keeps the work vectors, the state and the last captured graph between solves of one size (a solver's
@@ -45,6 +48,7 @@ from transtac_sim.physics.coarse_space import CoarseSpace, mat36d, prolong
 from transtac_sim.physics.sparse_product import diagonal_block
 
 CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
+UNROLL = 4  # iterations per pass of the conditional graph's loop (CUDA)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
 
@@ -263,6 +267,10 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 0])
         wp.launch(_decide, dim=1, device=device, inputs=[state, condition])
 
+    def unrolled():
+        for _ in range(UNROLL):
+            iteration()
+
     if device.is_cuda:
         conditional = wp.is_conditional_graph_supported()
         key = getattr(A, "graph_key", None)
@@ -272,7 +280,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             iteration()  # outside any capture: loads the kernels' modules
             with wp.ScopedCapture(device=device, force_module_load=False) as capture:
                 if conditional:
-                    wp.capture_while(condition, iteration)
+                    wp.capture_while(condition, unrolled)
                 else:
                     iteration()
             graph = capture.graph

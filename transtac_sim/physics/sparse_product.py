@@ -4,13 +4,16 @@ The device CG (device_linear.py) spends most of its time in this product: on the
 1.1M blocks of 3x3 float64, 80 MB) ``warp.sparse.bsr_mv`` took 123 us per call on an H100
 (``scripts/fem_phase_profile.py --gpu-activity``, BENCHMARKS.md ``fem_spmv_gpu``), several times what reading the
 blocks once costs. Warp's kernel gives each thread one scalar row and walks its blocks: neighbouring threads read
-24-byte pieces of blocks 72 bytes apart, and a row's ~35 blocks are read one after another by one thread.
+24-byte pieces of blocks 72 bytes apart, and a row's ~27 blocks are read one after another by one thread.
 
-Here a group of ``LANES`` threads (one warp) shares one block row: lane l takes blocks l, l + LANES, ... of the
-row, so the warp reads consecutive whole blocks (coalesced), and the lanes' 3-vectors are summed with a tile
-reduction: 40 us per call on the same matrix. Same arithmetic per block, another order of summation (results differ
-from ``bsr_mv`` by round-off). The stride is ``wp.block_dim()``, not ``LANES``: on the CPU Warp runs a group with
-fewer threads.
+Here ``ROW_LANES`` threads share one block row: lane l takes blocks l, l + ROW_LANES, ... of the row, so they read
+consecutive whole blocks (coalesced), and the lanes' 3-vectors are summed with a tile reduction; a thread block holds
+``ROWS_PER_GROUP`` rows (``_block_rows_product``). With one 32-thread block per row (40 us per call on the same matrix,
+23.6 us on its float32 copy) an SM held only half the threads it can (at most 32 resident thread blocks) and a row's
+~27 blocks left many of its 32 lanes idle; 8 rows of 16 lanes in 128 threads take 17.9 us on the float32 copy (H100,
+50 launches replayed in a graph; scripts/bench_cg_kernels.py, BENCHMARKS.md ``fem_cg_unrolled_gpu``). Same
+arithmetic per block, another order of summation (results differ from ``bsr_mv`` by round-off). On the CPU, where Warp
+runs a thread group as one thread, ``_block_row_product`` takes one row per group.
 
 With ``single_precision`` the product reads a copy of the blocks rounded to float32 (40 instead of 80 MB per product
 on press_slide) and does its arithmetic in float64: the device CG's matrix (device_linear.py). The rounding perturbs each
@@ -29,7 +32,9 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
-LANES = 32  # threads per block row: one warp
+ROWS_PER_GROUP = wp.constant(8)  # block rows per thread block of the CUDA product
+ROW_LANES = wp.constant(16)  # threads per block row there
+GROUP_THREADS = wp.constant(8 * 16)  # ROWS_PER_GROUP * ROW_LANES (a tile's shape takes a constant, not a product)
 
 
 @wp.func
@@ -65,6 +70,7 @@ def _block_row_product(
     beta: wp.float64,
     z: wp.array(dtype=wp.vec3d),
 ):
+    """z = alpha A x + beta y, one block row per thread group (the CPU's: Warp runs a group as one thread there)."""
     row, lane = wp.tid()
     blocks_of_row = block_row_range(offsets, row_counts, row)
     partial = wp.vec3d()
@@ -73,6 +79,39 @@ def _block_row_product(
     total = wp.tile_sum(wp.tile(partial, preserve_type=True))
     if lane == 0:
         value = alpha * total[0]
+        if beta != wp.float64(0.0):
+            value += beta * y[row]
+        z[row] = value
+
+
+@wp.kernel(enable_backward=False, module="unique")  # its own module: its tiles are sized for its launch's block
+def _block_rows_product(
+    offsets: wp.array(dtype=int),
+    row_counts: wp.array(dtype=int),
+    columns: wp.array(dtype=int),
+    blocks: wp.array(dtype=Any),
+    x: wp.array(dtype=wp.vec3d),
+    alpha: wp.float64,
+    y: wp.array(dtype=wp.vec3d),
+    beta: wp.float64,
+    z: wp.array(dtype=wp.vec3d),
+):
+    """z = alpha A x + beta y, ``ROWS_PER_GROUP`` block rows per thread group of ``ROWS_PER_GROUP * ROW_LANES``
+    threads, ``ROW_LANES`` per row (CUDA); the lanes' sums are reduced row by row from shared memory."""
+    group, lane = wp.tid()
+    row = group * ROWS_PER_GROUP + lane // ROW_LANES
+    inside = row < offsets.shape[0] - 1
+    partial = wp.vec3d()
+    if inside:
+        blocks_of_row = block_row_range(offsets, row_counts, row)
+        for k in range(blocks_of_row[0] + lane % ROW_LANES, blocks_of_row[1], ROW_LANES):
+            partial += wp.mat33d(blocks[k]) * x[columns[k]]
+    lanes = wp.tile_empty(shape=GROUP_THREADS, dtype=wp.vec3d, storage="shared")
+    wp.tile_assign(lanes, wp.tile(partial, preserve_type=True))
+    sums = wp.tile_sum(wp.tile_reshape(lanes, shape=(ROWS_PER_GROUP, ROW_LANES)), axis=1)
+    total = sums[lane // ROW_LANES]
+    if inside and lane % ROW_LANES == 0:
+        value = alpha * total
         if beta != wp.float64(0.0):
             value += beta * y[row]
         z[row] = value
@@ -99,8 +138,14 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False,
         blocks = rounded if rounded is not None else wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
         wp.launch(_round_to_float32, dim=len(A.values), device=A.device, inputs=[A.values, blocks])
 
+    if A.device.is_cuda:
+        kernel, groups, threads = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,
+                                   GROUP_THREADS)
+    else:
+        kernel, groups, threads = _block_row_product, A.nrow, 32
+
     def matvec(x, y, z, alpha, beta):
-        wp.launch_tiled(_block_row_product, dim=[A.nrow], block_dim=LANES, device=A.device,
+        wp.launch_tiled(kernel, dim=[groups], block_dim=threads, device=A.device,
                         inputs=[A.offsets, A.row_counts, A.columns, blocks, x, wp.float64(alpha), y,
                                 wp.float64(beta), z])
 

@@ -1,0 +1,178 @@
+"""What one iteration of the device CG costs, kernel by kernel, on a scene's last converged Newton system (CUDA).
+
+    .venv/bin/python scripts/bench_cg_kernels.py [scenes/press_slide.toml] [--frames 6]
+
+Runs the scene's first frames on the GPU, keeps the last Newton system the device CG solved (physics/device_linear.py),
+then:
+
+1. each kernel of a CG iteration (physics/definite_cg.py, coarse_space.py, sparse_product.py) launched 50 times in a
+   CUDA graph, the graph replayed 20 times: microseconds per launch, back to back on the GPU. The matrix-vector
+   product both ways: one 32-thread group per block row (``_block_row_product``, the CUDA product before
+   BENCHMARKS.md ``fem_cg_unrolled_gpu``, and the CPU's) and the CUDA one (``_block_rows_product``: 8 rows of 16
+   lanes per group); then one whole iteration as captured;
+2. the system solved from 0 at Newton's forcing tolerance (1e-2) and the tight one (1e-4) with each product and 1, 2
+   and 4 iterations per pass of the CG's conditional graph loop (``definite_cg.UNROLL``): iterations and the best of
+   three solves after a first one (which captures the graph); ``--rounds N`` runs these settings in turn N times.
+
+Prints markdown tables. The machine's other load shows in the per-launch times; compare rows of one run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import typer
+import warp as wp
+from warp.optim.linear import LinearOperator
+
+from transtac_sim.dataset.sequence import StageClock
+from transtac_sim.physics import coarse_space, definite_cg, device_linear, sparse_product
+from transtac_sim.scene_setup import load_setup
+from transtac_sim.simulation import simulate_frames
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _last_system(scene: Path, frames: int) -> dict:
+    """Runs ``frames`` frames of the scene on CUDA (device CG) and returns the last system the CG solved: the
+    projected Hessian H, its right-hand side and the solver's kept device work (``DeviceWork``, ``_last_cg``)."""
+    kept: dict = {}
+    solve_cg = device_linear.DeviceSolves._solve_cg
+
+    def keeping(self, H, rhs, rtol, exact_below, coarse_from_this=True):
+        x = solve_cg(self, H, rhs, rtol, exact_below, coarse_from_this)
+        if x is not None:
+            kept.update(H=H, rhs=wp.clone(rhs), linear=self)
+        return x
+
+    setup = load_setup(scene)
+    physics = setup.scene.physics.model_copy(update={"device": "cuda", "linear_solver": "cg"})
+    setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
+    device_linear.DeviceSolves._solve_cg = keeping
+    try:
+        for f in simulate_frames(setup, frames, StageClock()):
+            print(f"frame {f.frame}: {f.solver['iterations']} Newton iterations", flush=True)
+    finally:
+        device_linear.DeviceSolves._solve_cg = solve_cg
+    if not kept:
+        raise typer.BadParameter(f"{scene}: no Newton system was solved on the device in {frames} frame(s)")
+    return kept
+
+
+def _per_launch_us(launch, device, launches: int = 50, replays: int = 20) -> float:
+    """Microseconds per call of ``launch`` (graph-capturable), ``launches`` calls captured in one graph, replayed."""
+    launch()
+    with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+        for _ in range(launches):
+            launch()
+    wp.capture_launch(capture.graph)
+    wp.synchronize_device(device)
+    start = time.perf_counter()
+    for _ in range(replays):
+        wp.capture_launch(capture.graph)
+    wp.synchronize_device(device)
+    return 1e6 * (time.perf_counter() - start) / (launches * replays)
+
+
+def _row_per_group_operator(H, blocks) -> LinearOperator:
+    """The product with one 32-thread group per block row on the same float32 blocks (``_block_row_product``)."""
+    def matvec(x, y, z, alpha, beta):
+        wp.launch_tiled(sparse_product._block_row_product, dim=[H.nrow], block_dim=32, device=H.device,
+                        inputs=[H.offsets, H.row_counts, H.columns, blocks, x, wp.float64(alpha), y,
+                                wp.float64(beta), z])
+
+    operator = LinearOperator(H.shape, H.scalar_type, H.device, matvec)
+    operator.graph_key = ("one row per group", H.nrow, blocks.ptr)
+    return operator
+
+
+def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), frames: int = typer.Option(6, min=2),
+         rounds: int = typer.Option(1, min=1, help="times the solve table's settings are run in turn")):
+    if not wp.get_cuda_device_count():
+        raise typer.BadParameter("needs a CUDA device")
+    kept = _last_system(scene, frames)
+    H, linear = kept["H"], kept["linear"]
+    work, device, n = linear._work, H.device, H.nrow
+    A, M = linear._last_cg  # the library's product on the float32 blocks, and block-Jacobi
+    coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
+    products = {"one row per 32-thread group": _row_per_group_operator(H, work.rounded), "8 rows of 16 lanes": A}
+    print(f"\n{scene}, frame {frames - 1}'s last system on {wp.get_device(device).name}: {n} block rows, {H.nnz} blocks, "
+          f"coarse unknowns {coarse.size if coarse else 0}\n")
+
+    ws = work.cg
+    p, q, r, z, x = (wp.clone(kept["rhs"]) for _ in range(5))
+    state = ws.state
+    state.assign(np.array([1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1e9]))  # active, r.z = p.q = 1: every kernel does its work
+    basis = (coarse.basis, coarse.aggregate, coarse.values, coarse.restricted) if coarse else \
+        (ws.no_basis, ws.no_aggregate, ws.no_values, ws.no_values)
+
+    def tiled(kernel, *inputs):
+        wp.launch_tiled(kernel, dim=[definite_cg.DOT_BLOCKS], block_dim=definite_cg.DOT_THREADS, device=device,
+                        inputs=[*inputs, definite_cg.DOT_BLOCKS])
+
+    def step_precondition():
+        tiled(definite_cg._step_precondition, state, p, q, M.inverse_blocks, 1, x, r, z)
+
+    def step_p():
+        wp.launch(definite_cg._step_p, dim=n, device=device, inputs=[state, z, p, *basis, 0])
+
+    def decide():
+        wp.launch(definite_cg._decide, dim=1, device=device, inputs=[state, ws.condition])
+
+    def iteration():
+        A.matvec(p, q, q, 1.0, 0.0)
+        definite_cg.add_dot(p, q, state, definite_cg.PQ)
+        step_precondition()
+        if coarse:
+            coarse.solve(r, state, definite_cg.RZ_NEW)
+        step_p()
+        decide()
+
+    kernels = {f"product, {name}": (lambda op=op: op.matvec(p, q, q, 1.0, 0.0)) for name, op in products.items()}
+    kernels |= {"p . q": lambda: definite_cg.add_dot(p, q, state, definite_cg.PQ),
+                "x, r update, z = M r, r . z, abs(r)^2": step_precondition}
+    if coarse:
+        groups = (len(coarse._members) + coarse_space.RESTRICT_THREADS - 1) // coarse_space.RESTRICT_THREADS
+        kernels |= {
+            "coarse: P^T r": lambda: wp.launch_tiled(
+                coarse_space._restrict, dim=[groups], block_dim=coarse_space.RESTRICT_THREADS, device=device,
+                inputs=[r, coarse.basis, coarse._members, coarse.aggregate, coarse_space.RESTRICT_THREADS,
+                        coarse.restricted]),
+            "coarse: A_c^-1 P^T r": lambda: wp.launch_tiled(
+                coarse_space._coarse_product, dim=[coarse.size], block_dim=coarse_space.PRODUCT_THREADS, device=device,
+                inputs=[coarse.inverse, coarse.restricted, coarse.values, state, definite_cg.RZ_NEW])}
+    kernels |= {"p update": step_p, "stop test": decide, "one whole iteration (8 rows of 16 lanes)": iteration}
+    print("| kernel | us per launch |\n|---|---|")
+    for name, launch in kernels.items():
+        print(f"| {name} | {_per_launch_us(launch, device):.1f} |", flush=True)
+
+    print("\n| round | product | iterations per loop pass | rtol | CG iterations | ms per solve | us per iteration |")
+    print("|---|---|---|---|---|---|---|")
+    unroll = definite_cg.UNROLL
+    try:
+        for round_, passes in ((k, passes) for k in range(1, rounds + 1) for passes in (1, 2, 4)):
+            definite_cg.UNROLL = passes
+            for name, op in products.items():
+                workspace = definite_cg.CgWorkspace(n, device)
+                for rtol in (1e-2, 1e-4):
+                    seconds = []
+                    for _ in range(4):
+                        x.zero_()
+                        wp.synchronize_device(device)
+                        start = time.perf_counter()
+                        result = definite_cg.definite_cg(op, kept["rhs"], x, rtol, 5000, M, workspace=workspace,
+                                                         coarse=coarse)
+                        wp.synchronize_device(device)
+                        seconds.append(time.perf_counter() - start)
+                    best = min(seconds[1:])
+                    print(f"| {round_} | {name} | {passes} | {rtol:g} | {result.iterations} | {1e3 * best:.2f} | "
+                          f"{1e6 * best / max(result.iterations, 1):.1f} |", flush=True)
+    finally:
+        definite_cg.UNROLL = unroll
+
+
+if __name__ == "__main__":
+    typer.run(main)
