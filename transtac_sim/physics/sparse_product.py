@@ -95,12 +95,14 @@ def _block_rows_product(
     y: wp.array(dtype=wp.vec3d),
     beta: wp.float64,
     z: wp.array(dtype=wp.vec3d),
+    rows: int,
 ):
-    """z = alpha A x + beta y, ``ROWS_PER_GROUP`` block rows per thread group of ``ROWS_PER_GROUP * ROW_LANES``
-    threads, ``ROW_LANES`` per row (CUDA); the lanes' sums are reduced row by row from shared memory."""
+    """z = alpha A x + beta y for A's ``rows`` block rows (its ``offsets`` may be longer), ``ROWS_PER_GROUP`` of them
+    per thread group of ``ROWS_PER_GROUP * ROW_LANES`` threads, ``ROW_LANES`` per row (CUDA); the lanes' sums are
+    reduced row by row from shared memory."""
     group, lane = wp.tid()
     row = group * ROWS_PER_GROUP + lane // ROW_LANES
-    inside = row < offsets.shape[0] - 1
+    inside = row < rows
     partial = wp.vec3d()
     if inside:
         blocks_of_row = block_row_range(offsets, row_counts, row)
@@ -139,15 +141,15 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False,
         wp.launch(_round_to_float32, dim=len(A.values), device=A.device, inputs=[A.values, blocks])
 
     if A.device.is_cuda:
-        kernel, groups, threads = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,
-                                   GROUP_THREADS)
+        kernel, groups, threads, rows = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,
+                                         GROUP_THREADS, [A.nrow])
     else:
-        kernel, groups, threads = _block_row_product, A.nrow, 32
+        kernel, groups, threads, rows = _block_row_product, A.nrow, 32, []
 
     def matvec(x, y, z, alpha, beta):
         wp.launch_tiled(kernel, dim=[groups], block_dim=threads, device=A.device,
                         inputs=[A.offsets, A.row_counts, A.columns, blocks, x, wp.float64(alpha), y,
-                                wp.float64(beta), z])
+                                wp.float64(beta), z, *rows])
 
     operator = LinearOperator(A.shape, A.scalar_type, A.device, matvec)
     row_counts = A.row_counts.ptr if A.row_counts is not None else None
