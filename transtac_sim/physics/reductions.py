@@ -137,9 +137,9 @@ def max_abs(a: wp.array, b: wp.array | None = None) -> float:
 def extremes(a: wp.array) -> tuple[float, float]:
     """(min, max) of a float64 array; (NaN, NaN) where it holds a NaN, as numpy's min and max (and, as they do, an
     error for an empty array)."""
-    if a.shape[0] == 0:
-        raise ValueError("extremes of an empty array")
-    return read_extremes(_reduce(_extremes, [a], 3, a.device))
+    out = wp.empty(3, dtype=wp.float64, device=a.device)
+    launch_extremes(a, out)
+    return read_extremes(out)
 
 
 def launch_extremes(a: wp.array, out: wp.array) -> None:
@@ -149,9 +149,9 @@ def launch_extremes(a: wp.array, out: wp.array) -> None:
     _launch(_extremes, [a], out)
 
 
-def read_extremes(out) -> tuple[float, float]:
-    """(min, max) from ``launch_extremes``'s [min, max, NaN count] (a device array or its values)."""
-    low, high, nans = (float(v) for v in (out.numpy() if isinstance(out, wp.array) else out))
+def read_extremes(out: wp.array) -> tuple[float, float]:
+    """(min, max) from ``launch_extremes``'s [min, max, NaN count]."""
+    low, high, nans = (float(v) for v in out.numpy())
     return (float("nan"), float("nan")) if nans else (low, high)
 
 
