@@ -9,7 +9,10 @@ then:
    CUDA graph, the graph replayed 20 times: microseconds per launch, back to back on the GPU. The matrix-vector
    product both ways: one 32-thread group per block row (``_block_row_product``, the CUDA product before
    BENCHMARKS.md ``fem_cg_unrolled_gpu``, and the CPU's) and the CUDA one (``_block_rows_product``: 8 rows of 16
-   lanes per group); then one whole iteration as captured;
+   lanes per group), and two layouts the solver does not use, each checked against the library's product first: the
+   float32 blocks stored entry by entry (9 arrays, so that each of a row's 9 loads is one coalesced run) and the
+   vector gathered from a float32 copy (half the bytes per gathered entry), then both; then one whole iteration as
+   captured;
 2. the system solved from 0 at Newton's forcing tolerance (1e-2) and the tight one (1e-4) with each product and 1, 2
    and 4 iterations per pass of the CG's conditional graph loop (``definite_cg.UNROLL``): iterations and the best of
    three solves after a first one (which captures the graph); ``--rounds N`` runs these settings in turn N times.
@@ -22,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import typer
@@ -89,6 +93,72 @@ def _row_per_group_operator(H, blocks) -> LinearOperator:
     return operator
 
 
+@wp.kernel(enable_backward=False)
+def _split_entries(blocks: wp.array(dtype=wp.mat33f), entries: wp.array2d(dtype=wp.float32)):
+    """entries[3 i + j, k] = blocks[k][i, j]: the float32 blocks stored entry by entry."""
+    k = wp.tid()
+    B = blocks[k]
+    for i in range(3):
+        for j in range(3):
+            entries[3 * i + j, k] = B[i, j]
+
+
+@wp.func
+def _block_times(blocks: wp.array(dtype=wp.mat33f), k: int, x: wp.vec3d):
+    """Block k of the float32 blocks times x, in float64."""
+    return wp.mat33d(blocks[k]) * x
+
+
+@wp.func
+def _block_times(entries: wp.array2d(dtype=wp.float32), k: int, x: wp.vec3d):  # noqa: F811 (a Warp overload)
+    """Block k of the blocks stored entry by entry (entries[3 i + j, k]) times x, in float64."""
+    return wp.vec3d(
+        wp.float64(entries[0, k]) * x[0] + wp.float64(entries[1, k]) * x[1] + wp.float64(entries[2, k]) * x[2],
+        wp.float64(entries[3, k]) * x[0] + wp.float64(entries[4, k]) * x[1] + wp.float64(entries[5, k]) * x[2],
+        wp.float64(entries[6, k]) * x[0] + wp.float64(entries[7, k]) * x[1] + wp.float64(entries[8, k]) * x[2])
+
+
+@wp.kernel(enable_backward=False, module="unique")
+def _layout_rows_product(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                         matrix: Any, x: wp.array(dtype=Any), z: wp.array(dtype=wp.vec3d), rows: int):
+    """z = A x as ``sparse_product._block_rows_product`` (8 rows of 16 lanes per group) on A's float32 blocks as
+    ``matrix`` stores them (``_block_times``: one mat33f per block, or entry by entry, so that each of the 9 loads of a
+    row's 16 lanes is one coalesced run), gathering x as given (vec3d, or a vec3f copy)."""
+    group, lane = wp.tid()
+    row = group * sparse_product.ROWS_PER_GROUP + lane // sparse_product.ROW_LANES
+    inside = row < rows
+    partial = wp.vec3d()
+    if inside:
+        blocks_of_row = sparse_product.block_row_range(offsets, row_counts, row)
+        for k in range(blocks_of_row[0] + lane % sparse_product.ROW_LANES, blocks_of_row[1], sparse_product.ROW_LANES):
+            partial += _block_times(matrix, k, wp.vec3d(x[columns[k]]))
+    lanes = wp.tile_empty(shape=sparse_product.GROUP_THREADS, dtype=wp.vec3d, storage="shared")
+    wp.tile_assign(lanes, wp.tile(partial, preserve_type=True))
+    sums = wp.tile_sum(wp.tile_reshape(lanes, shape=(sparse_product.ROWS_PER_GROUP, sparse_product.ROW_LANES)), axis=1)
+    total = sums[lane // sparse_product.ROW_LANES]
+    if inside and lane % sparse_product.ROW_LANES == 0:
+        z[row] = total
+
+
+def _layout_products(H, blocks, p) -> tuple[dict, wp.array]:
+    """Launches of the experimental product layouts (not the solver's) on H's float32 ``blocks``, for z = A p, and
+    the array they write z into."""
+    entries = wp.empty((9, H.nnz), dtype=wp.float32, device=H.device)
+    wp.launch(_split_entries, dim=H.nnz, device=H.device, inputs=[blocks, entries])
+    p32 = wp.array(p.numpy().astype(np.float32), dtype=wp.vec3f, device=H.device)
+    out = wp.empty_like(p)
+    groups = (H.nrow + sparse_product.ROWS_PER_GROUP - 1) // sparse_product.ROWS_PER_GROUP
+    structure = [H.offsets, H.row_counts, H.columns]
+
+    def launch(matrix, vector):
+        return lambda: wp.launch_tiled(_layout_rows_product, dim=[groups], block_dim=sparse_product.GROUP_THREADS,
+                                       device=H.device, inputs=[*structure, matrix, vector, out, H.nrow])
+
+    return {"product, blocks entry by entry (experimental)": launch(entries, p),
+            "product, float32 copy of the vector (experimental)": launch(blocks, p32),
+            "product, both (experimental)": launch(entries, p32)}, out
+
+
 def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), frames: int = typer.Option(6, min=2),
          rounds: int = typer.Option(1, min=1, help="times the solve table's settings are run in turn")):
     if not wp.get_cuda_device_count():
@@ -132,6 +202,13 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
         decide()
 
     kernels = {f"product, {name}": (lambda op=op: op.matvec(p, q, q, 1.0, 0.0)) for name, op in products.items()}
+    layouts, layout_out = _layout_products(H, work.rounded, p)
+    A.matvec(p, q, q, 1.0, 0.0)
+    for name, launch in layouts.items():  # each against the library's product
+        launch()
+        print(f"{name}: largest difference from the library's product {np.abs(layout_out.numpy() - q.numpy()).max():.2e}"
+              f" (its largest entry {np.abs(q.numpy()).max():.2e})")
+    kernels |= layouts
     kernels |= {"p . q": lambda: definite_cg.add_dot(p, q, state, definite_cg.PQ),
                 "x, r update, z = M r, r . z, abs(r)^2": step_precondition}
     if coarse:

@@ -97,8 +97,8 @@ def _trace_solver() -> None:
               f"{dict(self.stats)}", flush=True)
         return ok, iterations, why, pen
 
-    def logged_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None):
-        result = cg(A, b, x, rtol, maxiter, M, atol, workspace)
+    def logged_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None):
+        result = cg(A, b, x, rtol, maxiter, M, atol, workspace, coarse)
         if not result.converged:
             print(f"    device CG stopped ({'not positive definite' if result.not_definite else 'iteration cap'}) "
                   f"after {result.iterations} of {maxiter} iterations, rtol {rtol:.1e}", flush=True)
