@@ -12,7 +12,7 @@ the iterations and the matrix-vector products with H per iteration (what a GPU i
 
 - ``two-level``: the device CG's own, block-Jacobi D^-1 plus the coarse correction P A_c^-1 P^T on rigid-body modes of
   aggregates (physics/coarse_space.py); its iterations should match the device CG's (printed beside it);
-- ``two-level, N coarse unknowns``: the same with about 6 times as many aggregates (a larger dense coarse inverse);
+- ``two-level, N coarse unknowns``: the same with about 5 times as many aggregates (a larger dense coarse inverse);
 - ``smoothed aggregation``: P smoothed once, (I - w D^-1 H) P with w = 4 / (3 lambda_max(D^-1 H)) (Vanek et al.);
 - ``P1 level, exact``: D^-1 plus the P2 element's own linear (P1) subspace solved exactly, Q (Q^T H Q)^-1 Q^T with Q
   the P1-in-P2 interpolation (a bound on what a p-multigrid coarse level could give, not a practical preconditioner:
@@ -22,7 +22,7 @@ the iterations and the matrix-vector products with H per iteration (what a GPU i
 - ``V-cycle, Chebyshev(2)``: symmetric multiplicative: Chebyshev(2) smoothing, the coarse correction on its residual,
   Chebyshev(2) smoothing again (four more products).
 
-lambda_max(D^-1 H) comes from 20 power iterations (times 1.1). Products are counted per CG iteration, the CG's own
+lambda_max(D^-1 H) comes from 20 power iterations (the Chebyshev smoothers take 1.1 times it). Products are counted per CG iteration, the CG's own
 included. A study of iteration counts only: it says which preconditioner could pay on the GPU, not what it would take
 there.
 """
@@ -178,14 +178,14 @@ def _chebyshev(H, D_inv, r, steps: int, lambda_max: float) -> np.ndarray:
 
 
 def _lambda_max(H, D_inv, free: np.ndarray) -> float:
-    """1.1 x lambda_max(D^-1 H) by 20 power iterations."""
+    """lambda_max(D^-1 H) by 20 power iterations (from below)."""
     x = np.random.default_rng(0).standard_normal(H.shape[0]) * free
     value = 1.0
     for _ in range(20):
         x = D_inv @ (H @ x)
         value = np.linalg.norm(x)
         x /= value
-    return 1.1 * value
+    return value
 
 
 def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
@@ -202,22 +202,23 @@ def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
     coarse = _coarse_solver(H, P)
     P6 = _aggregate_prolongation(positions, fixed, cell_mm, 6.0)
     coarse6 = _coarse_solver(H, P6)
-    smoothed = _coarse_solver(H, (P - (4.0 / (3.0 * lam / 1.1)) * (D_inv @ (H @ P))).tocsr())
+    smoothed = _coarse_solver(H, (P - (4.0 / (3.0 * lam)) * (D_inv @ (H @ P))).tocsr())
+    bound = 1.1 * lam  # the Chebyshev smoothers' upper end: above the power iteration's estimate
     Q = _p1_prolongation(solver)
     A1 = (Q.T @ H @ Q).tocsc()
-    A1 = A1 + sp.diags((A1.diagonal() == 0.0).astype(float))  # the fixed vertices' rows
+    A1 = A1 + sp.diags((A1.diagonal() == 0.0).astype(float))  # the fixed vertices' rows and columns
     p1 = sla.splu(A1.tocsc())
 
     def v_cycle(r):
-        x = _chebyshev(H, D_inv, r, 2, lam)
+        x = _chebyshev(H, D_inv, r, 2, bound)
         x = x + coarse(r - H @ x)
-        return x + _chebyshev(H, D_inv, r - H @ x, 2, lam)
+        return x + _chebyshev(H, D_inv, r - H @ x, 2, bound)
 
     return {f"two-level (the device CG's; {P.shape[1]} coarse unknowns)": (lambda r: D_inv @ r + coarse(r), 1),
             f"two-level, {P6.shape[1]} coarse unknowns": (lambda r: D_inv @ r + coarse6(r), 1),
             "smoothed aggregation": (lambda r: D_inv @ r + smoothed(r), 1),
             "P1 level, exact": (lambda r: D_inv @ r + Q @ p1.solve(Q.T @ r), 1),
-            "Chebyshev(2) + coarse": (lambda r: _chebyshev(H, D_inv, r, 2, lam) + coarse(r), 2),
+            "Chebyshev(2) + coarse": (lambda r: _chebyshev(H, D_inv, r, 2, bound) + coarse(r), 2),
             "V-cycle, Chebyshev(2)": (v_cycle, 5)}
 
 
