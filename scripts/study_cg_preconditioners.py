@@ -36,7 +36,6 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 import typer
-import warp as wp
 from scipy.spatial import cKDTree
 
 from transtac_sim.dataset.sequence import StageClock
@@ -194,8 +193,8 @@ def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
     fixed = solver._fixed_nodes
     positions = solver._node_positions.numpy()
     cell_mm = solver.settings.coarse_cell_mm
-    D_inv = sp.bsr_matrix((np.linalg.inv(_diagonal_blocks(H, H.shape[0] // 3)), np.arange(H.shape[0] // 3),
-                           np.arange(H.shape[0] // 3 + 1)), shape=H.shape).tocsr()
+    n = H.shape[0] // 3
+    D_inv = sp.bsr_matrix((np.linalg.inv(_diagonal_blocks(H, n)), np.arange(n), np.arange(n + 1)), shape=H.shape).tocsr()
     free = 1.0 - fixed.reshape(-1).astype(float)
     lam = _lambda_max(H, D_inv, free)
     P = _aggregate_prolongation(positions, fixed, cell_mm)
@@ -205,9 +204,9 @@ def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
     smoothed = _coarse_solver(H, (P - (4.0 / (3.0 * lam)) * (D_inv @ (H @ P))).tocsr())
     bound = 1.1 * lam  # the Chebyshev smoothers' upper end: above the power iteration's estimate
     Q = _p1_prolongation(solver)
-    A1 = (Q.T @ H @ Q).tocsc()
-    A1 = A1 + sp.diags((A1.diagonal() == 0.0).astype(float))  # the fixed vertices' rows and columns
-    p1 = sla.splu(A1.tocsc())
+    A1 = Q.T @ H @ Q
+    A1 = (A1 + sp.diags((A1.diagonal() == 0.0).astype(float))).tocsc()  # the fixed vertices' rows and columns
+    p1 = sla.splu(A1)
 
     def v_cycle(r):
         x = _chebyshev(H, D_inv, r, 2, bound)
@@ -224,7 +223,6 @@ def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
 
 def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), frames: int = typer.Option(3, min=1),
          every: int = typer.Option(4, min=1, help="study every this-th Newton system")) -> None:
-    wp.init()
     systems, solver = _systems(scene, frames)
     if solver.settings.coarse_cell_mm is None:
         raise typer.BadParameter("the scene has no coarse level ([physics] coarse_cell_mm); this study compares with it")
