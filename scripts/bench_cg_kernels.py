@@ -40,8 +40,8 @@ from transtac_sim.simulation import simulate_frames
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _last_system(scene: Path, frames: int) -> dict:
-    """Runs ``frames`` frames of the scene on CUDA (device CG) and returns the last system the CG solved: the
+def _last_system(scene: Path, frames: int, device: str = "cuda") -> dict:
+    """Runs ``frames`` frames of the scene on ``device`` (device CG) and returns the last system the CG solved: the
     projected Hessian H, its right-hand side and the solver's kept device work (``DeviceWork``, ``_last_cg``)."""
     kept: dict = {}
     solve_cg = device_linear.DeviceSolves._solve_cg
@@ -53,7 +53,7 @@ def _last_system(scene: Path, frames: int) -> dict:
         return x
 
     setup = load_setup(scene)
-    physics = setup.scene.physics.model_copy(update={"device": "cuda", "linear_solver": "cg"})
+    physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": "cg"})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     device_linear.DeviceSolves._solve_cg = keeping
     try:

@@ -13,7 +13,9 @@ Runs the generator into a temporary folder, reads the per-stage seconds from its
 table into BENCHMARKS.md (section ``generate``) with the machine it ran on and this command.
 
 ``--summarize DIR`` reads a dataset folder, finished or cut short, and prints what its frames' solver records say
-(physics seconds and Newton iterations per frame, per sequence) and the failures kept for resuming.
+(physics seconds and Newton iterations per frame, per sequence) and the failures kept for resuming, and how many more
+Newton systems batches of sequences solved in lockstep would take (``lockstep_ratio``: the cost side of a batched
+solver, issue 12).
 
 ``--mesh-only`` builds and caches the gel mesh of each of those sequences (their marker layouts differ) and
 stops: for a benchmark machine without fTetWild, carry the cache folder (``TRANSTAC_SIM_CACHE``) there; its
@@ -133,9 +135,34 @@ def solver_summary(root: Path) -> str:
                      f"{statistics.median(its):g}, max {max(its)}; frames with sub-steps: "
                      f"{sum(r.get('substeps', 1) > 1 for r in records)}; not converged: "
                      f"{sum(not r['converged'] for r in records)}")
+        its_by_sequence = [[r["iterations"] for r in rs] for rs in frames.values()]
+        lines.append("solved in lockstep (batches of K sequences in one solve, each frame taking its batch's largest "
+                     "Newton iteration count): " + ", ".join(
+                         f"K = {k}: {lockstep_ratio(its_by_sequence, k):.2f}x the Newton systems" for k in LOCKSTEP_BATCHES
+                         if k <= len(its_by_sequence)))
         lines += [f"- {seq}: {len(rs)} frames, {sum(r['seconds'] for r in rs):.1f} s of physics, Newton iterations "
                   f"{[r['iterations'] for r in rs]}" for seq, rs in frames.items()]
     return "\n".join(lines)
+
+
+#: batch sizes of the lockstep estimate in ``solver_summary``
+LOCKSTEP_BATCHES = (2, 4, 8)
+
+
+def lockstep_ratio(its_by_sequence: list[list[int]], batch: int) -> float:
+    """Newton systems solved if the sequences (each a list of Newton iterations per frame, frames in order) were solved
+    in batches of ``batch`` consecutive ones in lockstep, per Newton system solved alone (>= 1). In lockstep a batch's
+    frame takes as many batched iterations as its slowest sequence, and each serves as many systems as the batch has
+    sequences (a sequence without that frame, e.g. one that failed earlier, still occupies its slot; the last batch may
+    be smaller). A lower bound for a batched solver:
+    one that shares the line search or sub-steps across the batch couples its sequences further."""
+    alone = sum(sum(its) for its in its_by_sequence)
+    together = 0
+    for start in range(0, len(its_by_sequence), batch):
+        group = its_by_sequence[start:start + batch]
+        frames = max(len(its) for its in group)
+        together += len(group) * sum(max(its[f] if f < len(its) else 0 for its in group) for f in range(frames))
+    return together / alone if alone else 1.0
 
 
 def _mesh_sequences(scene_path: Path, sequences: int) -> None:
