@@ -112,6 +112,10 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
         update_section(REPO / "BENCHMARKS.md", section, md)
 
 
+#: batch sizes of the lockstep estimate in ``solver_summary``
+LOCKSTEP_BATCHES = (2, 4, 8)
+
+
 def solver_summary(root: Path) -> str:
     """The physics of a dataset folder (finished or cut short), from its frames' ``labels.json`` solver records and
     the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence."""
@@ -129,24 +133,20 @@ def solver_summary(root: Path) -> str:
               for f in failures]
     if records:
         seconds = [r["seconds"] for r in records]
-        its = [r["iterations"] for r in records]
+        its_by_sequence = [[r["iterations"] for r in rs] for rs in frames.values()]
+        its = [n for seq_its in its_by_sequence for n in seq_its]
         lines.append(f"physics seconds per frame: median {statistics.median(seconds):.2f}, mean "
                      f"{statistics.mean(seconds):.2f}, max {max(seconds):.1f}; Newton iterations per frame: median "
                      f"{statistics.median(its):g}, max {max(its)}; frames with sub-steps: "
                      f"{sum(r.get('substeps', 1) > 1 for r in records)}; not converged: "
                      f"{sum(not r['converged'] for r in records)}")
-        its_by_sequence = [[r["iterations"] for r in rs] for rs in frames.values()]
         lines.append("solved in lockstep (batches of K sequences in one solve, each frame taking its batch's largest "
                      "Newton iteration count): " + ", ".join(
                          f"K = {k}: {lockstep_ratio(its_by_sequence, k):.2f}x the Newton systems" for k in LOCKSTEP_BATCHES
                          if k <= len(its_by_sequence)))
         lines += [f"- {seq}: {len(rs)} frames, {sum(r['seconds'] for r in rs):.1f} s of physics, Newton iterations "
-                  f"{[r['iterations'] for r in rs]}" for seq, rs in frames.items()]
+                  f"{seq_its}" for (seq, rs), seq_its in zip(frames.items(), its_by_sequence, strict=True)]
     return "\n".join(lines)
-
-
-#: batch sizes of the lockstep estimate in ``solver_summary``
-LOCKSTEP_BATCHES = (2, 4, 8)
 
 
 def lockstep_ratio(its_by_sequence: list[list[int]], batch: int) -> float:
@@ -154,8 +154,8 @@ def lockstep_ratio(its_by_sequence: list[list[int]], batch: int) -> float:
     in batches of ``batch`` consecutive ones in lockstep, per Newton system solved alone (>= 1). In lockstep a batch's
     frame takes as many batched iterations as its slowest sequence, and each serves as many systems as the batch has
     sequences (a sequence without that frame, e.g. one that failed earlier, still occupies its slot; the last batch may
-    be smaller). A lower bound for a batched solver:
-    one that shares the line search or sub-steps across the batch couples its sequences further."""
+    be smaller). A lower bound for a batched solver: one that shares the line search or sub-steps across the batch
+    couples its sequences further."""
     alone = sum(sum(its) for its in its_by_sequence)
     together = 0
     for start in range(0, len(its_by_sequence), batch):
