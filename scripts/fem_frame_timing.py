@@ -9,6 +9,8 @@
 Newton iterations (Hessian assemblies), line-search halvings, contact stiffness raises, warm starts,
 sub-steps, seconds.
 
+``--friction MU`` replaces every indenter's friction coefficient (0: frictionless), e.g. to see what friction costs.
+
 ``--sequence I`` solves sequence I of a randomised scene (its drawn indenter, depth, slide, friction and
 layout, as ``generate`` would): e.g. to see why a frame of ``scenes/train_random.toml`` failed.
 
@@ -64,8 +66,13 @@ def _sequence_setup(scene: Path, index: int):
     return setup
 
 
+def _with_friction(setup, friction: float):
+    placed = [dataclasses.replace(p, config=p.config.model_copy(update={"friction": friction})) for p in setup.indenters]
+    return dataclasses.replace(setup, indenters=type(setup.indenters)(placed))
+
+
 def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, sequence: int | None = None,
-        friction_lag_moves: int | None = None) -> dict:
+        friction_lag_moves: int | None = None, friction: float | None = None) -> dict:
     """Solves the frames; returns the run's description and per-frame solver records."""
     setup = load_setup(scene) if sequence is None else _sequence_setup(scene, sequence)
     physics = setup.scene.physics.model_copy(update={"degree": degree} | (
@@ -73,6 +80,8 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     if trajectory_from is not None:
         setup = _with_trajectories(setup, trajectory_from)
+    if friction is not None:
+        setup = _with_friction(setup, friction)
     records = []
     solve_frame = QuasiStaticSolver.solve_frame
 
@@ -83,7 +92,8 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
 
     QuasiStaticSolver.solve_frame = recording
     what = f"{scene}" + (f" with the trajectories of {trajectory_from}" if trajectory_from else "") + (
-        f" sequence {sequence}" if sequence is not None else "")
+        f" sequence {sequence}" if sequence is not None else "") + (f", friction {friction:g}" if friction is not None
+                                                                     else "")
     device = physics_device(setup.scene.physics.device)
     print(f"{what} on a {os.cpu_count()}-core CPU (physics device {device}), P{degree}, {frames} frame(s)")
     clock, t0, load0 = StageClock(), time.perf_counter(), os.getloadavg()[0]
@@ -153,6 +163,8 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          max_newton_iterations: int | None = typer.Option(None, min=1, help="replace SolverSettings' "
                                                           "max_newton_iterations (per sub-step)"),
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
+         friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
+                                               "(after --trajectory-from)"),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
@@ -165,7 +177,7 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
         from transtac_sim import physics  # simulation.py imports SolverSettings from here when it solves
 
         physics.SolverSettings = functools.partial(physics.SolverSettings, max_newton_iterations=max_newton_iterations)
-    result = run(scene, degree, frames, trajectory_from, sequence, friction_lag_moves)
+    result = run(scene, degree, frames, trajectory_from, sequence, friction_lag_moves, friction)
     if benchmarks:
         from benchmarks_md import update_section
 

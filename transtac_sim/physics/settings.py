@@ -62,6 +62,9 @@ class SolverRecord:
     converged: bool
     iterations: int
     residual: float  # |gradient| (N) on the free dofs at the solution
+    # the smallest det F at the inversion barrier's 4 check points per tet (elasticity.py). P2-P0 holds the volume at
+    # each tet's centroid only: on press_slide's slide this reads 0.1-0.4 in surface tets under the contact while every
+    # centroid J stays within 0.97-1.01 (scripts/fem_det_f_sites.py, BENCHMARKS.md fem_det_f_sites)
     min_det_f: float
     seconds: float
     substeps: int  # load steps the frame was solved in (1: in one; more after a failed step was halved, solver.py)

@@ -1,0 +1,294 @@
+"""FEM error against run time on the press-and-slide scene: contact mesh size x friction's lag moves, with friction.
+
+    .venv/bin/python scripts/fem_slide_error_vs_runtime.py [--scene scenes/press_slide.toml] [--frames 10]
+        [--settings 1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4] [--reference 0.3/4] [--device cpu|cuda] [--mesh-only] [--no-write]
+
+``scripts/fem_error_vs_runtime.py`` measures a frictionless press on a structured quarter block; datasets are made of
+presses *and slides* with friction, on fTetWild meshes of the whole gel. This script solves a scene as ``generate``
+does, once per setting EDGE/LAGS[/SPLIT]: ``[mesh] contact_edge_mm`` = EDGE (the element size over the contact region),
+``[physics] friction_lag_moves`` = LAGS (friction's lag moves per step, newton.py) and, with SPLIT, every trajectory
+segment's frames times SPLIT (each frame then solved in SPLIT load steps: friction is path dependent, so finer load steps
+are a refinement of their own), everything else as in the scene.
+The markers are the scene's own (each mesh embeds them anew), so every setting's marker centres compare with the
+reference's (the finest setting) frame by frame. Per setting: tets and P2 unknowns, physics seconds per frame (median
+over frames 1..N-1: frame 0 loads kernels), Newton iterations per frame (median) and the load steps each frame took (1,
+or more where a step was halved: friction is path dependent, so a halved step changes the solution, not only its
+cost), and against the reference: marker error, the largest and the RMS over all frames and markers (mm, and % of the
+largest reference marker displacement) and the largest per frame, and the largest force error over the frames,
+|F - F_ref| (the whole force vector) in % of the largest |F_ref|.
+
+Writes BENCHMARKS.md section ``fem_slide_error_vs_runtime`` (``..._gpu`` for --device cuda), the plot
+docs/figures/fem_slide_error_vs_runtime[_gpu].png and the raw rows out/fem_slide_error_vs_runtime[_gpu].json
+(``--friction MU`` replaces every indenter's friction coefficient and appends ``_friction_MU`` to these names,
+``--friction-slip-mm MM`` friction's smoothing, ``[physics] friction_slip_mm``, and appends ``_slip_MM``; ``--suffix S``
+appends ``_S``).
+``--mesh-only`` meshes every setting (into the mesh cache, e.g. before carrying it to another machine) and stops;
+``--replot`` makes the section and plot again from the run's JSON, without solving.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import NamedTuple
+from unittest import mock
+
+import numpy as np
+import typer
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchmarks_md import machine_name, update_section  # noqa: E402
+
+from transtac_sim import meshing  # noqa: E402
+from transtac_sim.dataset.sequence import StageClock  # noqa: E402
+from transtac_sim.meshing import mesh_gel  # noqa: E402
+from transtac_sim.scene_setup import load_setup  # noqa: E402
+from transtac_sim.simulation import simulate_frames  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Setting(NamedTuple):
+    """One way of solving the scene (``main``'s EDGE/LAGS[/SPLIT])."""
+
+    edge_mm: float  # [mesh] contact_edge_mm
+    lag_moves: int  # [physics] friction_lag_moves
+    split: int = 1  # each frame solved as this many load steps (the trajectory's frames times SPLIT)
+
+    def label(self) -> str:
+        return f"{self.edge_mm:g}/{self.lag_moves}" + (f"/{self.split}" if self.split > 1 else "")
+
+
+def parse_setting(text: str) -> Setting:
+    """"EDGE/LAGS[/SPLIT]" -> Setting."""
+    parts = text.strip().split("/")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        setting = Setting(float(parts[0]), int(parts[1]), int(parts[2]) if len(parts) == 3 else 1)
+    except ValueError:
+        raise typer.BadParameter(f"{text!r}: expected EDGE/LAGS or EDGE/LAGS/SPLIT, e.g. 0.8/4 or 0.8/4/2") from None
+    if setting.edge_mm <= 0 or setting.lag_moves < 1 or setting.split < 1:
+        raise typer.BadParameter(f"{text!r}: EDGE must be > 0 mm, LAGS and SPLIT >= 1")
+    return setting
+
+
+def with_indenters(setup, split: int = 1, friction: float | None = None):
+    """The scene setup with every trajectory segment's frames times ``split`` and, if given, every indenter's friction
+    coefficient replaced."""
+    placed = []
+    for p in setup.indenters:
+        trajectory = [seg.model_copy(update={"frames": seg.frames * split}) for seg in p.config.trajectory]
+        placed.append(dataclasses.replace(p, config=p.config.model_copy(
+            update={"trajectory": trajectory} | ({"friction": friction} if friction is not None else {}))))
+    return dataclasses.replace(setup, indenters=type(setup.indenters)(placed))
+
+
+def with_setting(setup, setting: Setting, device: str, friction: float | None = None,
+                 slip_mm: float | None = None):
+    """The scene setup with the contact mesh size and lag moves replaced, and if given the physics device, every
+    indenter's friction coefficient and friction's smoothing (not the split: ``solve`` splits the frames)."""
+    setup = with_indenters(setup, friction=friction)
+    scene = setup.scene
+    physics = scene.physics.model_copy(update={"friction_lag_moves": setting.lag_moves}
+                                       | ({"device": device} if device else {})
+                                       | ({"friction_slip_mm": slip_mm} if slip_mm is not None else {}))
+    mesh = scene.mesh.model_copy(update={"contact_edge_mm": setting.edge_mm})
+    return dataclasses.replace(setup, scene=scene.model_copy(update={"physics": physics, "mesh": mesh}))
+
+
+def p2_unknowns(tets: np.ndarray) -> int:
+    """3 x (vertices + edges) of a P2 mesh."""
+    edges = np.sort(tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2), axis=1)
+    return 3 * (len(np.unique(tets)) + len(np.unique(edges, axis=0)))
+
+
+def solve(setup, frames: int, split: int = 1) -> dict:
+    """Solves ``frames`` frames of ``setup`` with each frame split into ``split`` (every trajectory segment's frames
+    times ``split``, on the unsplit scene's mesh: the mesh cache would otherwise mesh the split scene anew, and fTetWild
+    makes another mesh): frame f is the split scene's frame split (f + 1) - 1 (frame k of a segment's n is at k/n of its
+    motion), its seconds, iterations and load steps the sums over the split frames up to it. Returns per-frame markers
+    (mm), forces (N), seconds, iterations and load steps, and the mesh's size."""
+    meshed = mesh_gel(setup)
+    rows = {"markers": [], "forces": [], "seconds": [], "iterations": [], "substeps": []}
+    seconds, iterations, steps = 0.0, 0, 0
+    with mock.patch.object(meshing, "mesh_gel", lambda *args, **kwargs: meshed):  # simulation.py imports it per call
+        solved = list(simulate_frames(with_indenters(setup, split), frames * split, StageClock()))
+    for f in solved:
+        seconds, iterations = seconds + float(f.solver["seconds"]), iterations + int(f.solver["iterations"])
+        steps += int(f.solver["substeps"])
+        if (f.frame + 1) % split:
+            continue
+        rows["markers"].append(np.asarray(f.markers_gel_mm).tolist())
+        rows["forces"].append(np.sum(f.forces_n, axis=0).tolist())
+        rows["seconds"].append(seconds)
+        rows["iterations"].append(iterations)
+        rows["substeps"].append(steps)
+        seconds, iterations, steps = 0.0, 0, 0
+    return rows | {"tets": int(len(meshed.mesh.tets)), "dofs": p2_unknowns(meshed.mesh.tets)}
+
+
+def errors(row: dict, ref: dict, rest_mm: np.ndarray) -> dict:
+    """Marker and force errors of ``row`` against ``ref`` over all frames (see the module docstring)."""
+    m, m_ref = np.array(row["markers"]), np.array(ref["markers"])
+    diff = np.linalg.norm(m - m_ref, axis=2)  # (frames, markers)
+    scale = float(np.max(np.linalg.norm(m_ref - rest_mm, axis=2)))
+    F, F_ref = np.array(row["forces"]), np.array(ref["forces"])
+    force = float(np.max(np.linalg.norm(F - F_ref, axis=1)) / max(np.max(np.linalg.norm(F_ref, axis=1)), 1e-12))
+    rms = float(np.sqrt(np.mean(diff ** 2)))
+    return {"marker_max_mm": float(diff.max()), "marker_rms_mm": rms, "marker_max_pct": 100 * float(diff.max()) / scale,
+            "marker_max_per_frame_mm": diff.max(axis=1).tolist(),
+            "marker_rms_pct": 100 * rms / scale, "force_max_pct": 100 * force, "largest_displacement_mm": scale}
+
+
+def summary(row: dict) -> dict:
+    return {"s_frame": statistics.median(row["seconds"][1:] or row["seconds"]),  # frame 0 loads kernels
+            "iterations_median": statistics.median(row["iterations"]), "iterations_total": sum(row["iterations"])}
+
+
+def plot(rows: list[dict], path: Path, title: str) -> None:
+    """Marker error (RMS and largest) against physics seconds per frame, one line per (lag moves, split)."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), dpi=90)
+    for ax, key, label in ((axes[0], "marker_rms_mm", "marker error, RMS over frames and markers (mm)"),
+                           (axes[1], "marker_max_mm", "marker error, largest (mm)")):
+        for lags, split in sorted({(r["lag_moves"], r["split"]) for r in rows}):
+            pts = sorted((r["s_frame"], max(r[key], 1e-5), r["edge_mm"]) for r in rows
+                         if (r["lag_moves"], r["split"]) == (lags, split))
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", ms=5, lw=0.8,
+                    label=f"{lags} lag move(s) a step" + (f", frames split in {split}" if split > 1 else ""))
+            for t, e, h in pts:
+                ax.annotate(f"{h:g} mm", (t, e), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):  # 1, 2 and 5 times powers of ten: a decade or less is on most axes here
+            axis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+            axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xlabel("physics seconds per frame (median)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+
+
+def measure(scene: Path, frames: int, chosen: list[Setting], ref_setting: Setting, device: str,
+            friction: float | None, slip_mm: float | None) -> dict:
+    """Solves the reference and every chosen setting (after a 2-frame warm-up); the rows and what ``report`` needs."""
+    base = load_setup(scene)
+    t0, load0 = time.perf_counter(), os.getloadavg()[0]
+    solve(with_setting(base, chosen[0], device, friction, slip_mm), 2, chosen[0].split)  # kernels loaded outside timing
+    rest = np.asarray(base.sensor.markers_rest_gel_mm)
+    ref = solve(with_setting(base, ref_setting, device, friction, slip_mm), frames, ref_setting.split)
+    ref |= ref_setting._asdict() | summary(ref)
+    print(f"reference {ref_setting.label()}: {ref['tets']} tets, {ref['s_frame']:.2f} s/frame, {ref['iterations']}",
+          flush=True)
+    rows = []
+    for setting in chosen:
+        r = solve(with_setting(base, setting, device, friction, slip_mm), frames, setting.split)
+        r |= setting._asdict() | summary(r) | errors(r, ref, rest)
+        rows.append(r)
+        print(f"{setting.label()}: {r['tets']} tets, {r['s_frame']:.2f} s/frame, iterations {r['iterations']}, markers "
+              f"max {r['marker_max_mm']:.4f} rms {r['marker_rms_mm']:.4f} mm, force {r['force_max_pct']:.2f} %",
+              flush=True)
+    gpu = (device or base.scene.physics.device).startswith("cuda")
+    scene_name = scene.resolve().relative_to(ROOT) if scene.resolve().is_relative_to(ROOT) else scene
+    meta = {"machine": machine_name("cuda" if gpu else "cpu"), "gpu": gpu, "minutes": (time.perf_counter() - t0) / 60,
+            "load": [load0, os.getloadavg()[0]], "cpus": os.cpu_count(), "scene": str(scene_name), "frames": frames,
+            "markers": len(rest), "largest_displacement_mm": errors(ref, ref, rest)["largest_displacement_mm"],
+            "friction": friction, "slip_mm": slip_mm, "reference": ref_setting.label(),
+            "command": ".venv/bin/python scripts/fem_slide_error_vs_runtime.py " + " ".join(sys.argv[1:])}
+    return {"reference": ref, "rows": rows, "meta": meta}
+
+
+def report(data: dict, name: str) -> str:
+    """The BENCHMARKS.md section's markdown."""
+    ref, rows, meta = data["reference"], data["rows"], data["meta"]
+    header = ("| contact edge (mm) | lag moves a step | each frame split into | tets | P2 unknowns | physics s / frame "
+              "(median) | Newton it. / frame (median; all frames) | load steps taken per frame | marker err max mm (%) | "
+              "marker err RMS mm (%) | marker err max per frame (mm) | force err max (% of max force) |")
+    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    for r in [*rows, ref]:
+        cells = [f"{r['edge_mm']:g}" + (" (reference)" if r is ref else ""), str(r["lag_moves"]), str(r["split"]),
+                 str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}",
+                 f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}", ", ".join(map(str, r["substeps"]))]
+        cells += ["-"] * 4 if r is ref else [
+            f"{r['marker_max_mm']:.4f} ({r['marker_max_pct']:.2f})", f"{r['marker_rms_mm']:.4f} ({r['marker_rms_pct']:.2f})",
+            ", ".join(f"{e:.3f}" for e in r["marker_max_per_frame_mm"]), f"{r['force_max_pct']:.2f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    changed = (f"every indenter's friction set to {meta['friction']:g}, " if meta["friction"] is not None else "") + (
+        f"friction_slip_mm {meta['slip_mm']:g}, " if meta["slip_mm"] is not None else "")
+    return "\n".join([
+        f"Machine: {meta['machine']}. Command: `{meta['command'].strip()}` ({meta['minutes']:.0f} min in all; load "
+        f"average {meta['load'][0]:.1f} at the start, {meta['load'][1]:.1f} at the end, on {meta['cpus']} CPUs).",
+        "",
+        f"Scene: `{meta['scene']}`, {meta['frames']} frames, {changed}{meta['markers']} markers (largest reference marker "
+        f"displacement {meta['largest_displacement_mm']:.3f} mm). Errors against the reference over all frames; see the "
+        "script's docstring.",
+        "",
+        *lines,
+        "",
+        f"![FEM error against run time on the slide](docs/figures/{name}.png)",
+    ])
+
+
+def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frames: int = typer.Option(10, min=2),
+         settings: str = typer.Option("1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4",
+                                      help="EDGE/LAGS[/SPLIT],...: contact edge (mm) / lag moves / frame split"),
+         reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT] of the reference solution"),
+         device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
+         friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
+                                               "(0: frictionless); the section and plot names end in _friction_MU"),
+         friction_slip_mm: float | None = typer.Option(None, min=1e-4, help="replace [physics] friction_slip_mm "
+                                                       "(friction's smoothing); the names end in _slip_MM"),
+         suffix: str = typer.Option("", help="appended to the section, plot and JSON names (e.g. load_steps)"),
+         mesh_only: bool = typer.Option(False, help="mesh every setting (fills the mesh cache) and stop"),
+         replot: bool = typer.Option(False, help="no solving: the section and plot again from the run's JSON"),
+         no_write: bool = typer.Option(False, help="print only: no BENCHMARKS.md, JSON or PNG")) -> None:
+    chosen = [parse_setting(s) for s in settings.split(",") if s.strip()]
+    ref_setting = parse_setting(reference)
+    if mesh_only:
+        base = load_setup(scene)
+        for edge in sorted({s.edge_mm for s in [ref_setting, *chosen]}):
+            m = mesh_gel(with_setting(base, Setting(edge, 1), device)).mesh
+            print(f"contact edge {edge:g} mm: {len(m.tets)} tets, {p2_unknowns(m.tets)} P2 unknowns", flush=True)
+        return
+    gpu = (device or load_setup(scene).scene.physics.device).startswith("cuda")
+    name = "fem_slide_error_vs_runtime" + ("_gpu" if gpu else "") + (
+        f"_friction_{friction:g}" if friction is not None else "") + (
+        f"_slip_{friction_slip_mm:g}" if friction_slip_mm is not None else "") + (f"_{suffix}" if suffix else "")
+    out = ROOT / "out" / f"{name}.json"
+    if replot:
+        data = json.loads(out.read_text())
+    else:
+        data = measure(scene, frames, chosen, ref_setting, device, friction, friction_slip_mm)
+    body = report(data, name)
+    print(body)
+    if no_write:
+        return
+    if not replot:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(data))
+    meta = data["meta"]
+    plot(data["rows"], ROOT / "docs" / "figures" / f"{name}.png",
+         f"{Path(meta['scene']).stem} FEM error vs run time, {meta['machine']}, reference {meta['reference']}"
+         + (f", friction {meta['friction']:g}" if meta["friction"] is not None else "")
+         + (f", slip {meta['slip_mm']:g} mm" if meta["slip_mm"] is not None else ""))
+    update_section(ROOT / "BENCHMARKS.md", name, body)
+
+
+if __name__ == "__main__":
+    typer.run(main)
