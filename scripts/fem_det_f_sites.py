@@ -7,7 +7,7 @@ The solver record's ``min_det_f`` is the smallest det F = J at the inversion bar
 tet, the centroid (P2-P0): there J stays near 1 for a gel of Poisson ratio 0.49, while between that point and a
 tet's corners J varies with the quadratic displacement, held by the shear term alone. This script tells the two
 apart. Per frame: the smallest check-point J and, for the tet that holds it, its 4 check-point values, its centroid J,
-its depth below the contact surface (mm), how many of its vertices lie on the boundary and its shape quality
+its depth (its rest centroid below the gel's top face, mm), how many of its vertices lie on the boundary and its shape quality
 (6 sqrt(2) V / l_rms^3: 1 for a regular tet) with the fraction of tets of worse quality; over the whole mesh, the range
 of the centroid J and the number of tets with a check-point J below 0.5.
 """
@@ -25,7 +25,7 @@ import warp.fem as fem
 from transtac_sim.dataset.sequence import StageClock
 from transtac_sim.physics import QuasiStaticSolver, elasticity
 from transtac_sim.scene_setup import load_setup
-from transtac_sim.simulation import simulate_frames
+from transtac_sim.simulation import physics_device, simulate_frames
 
 
 def tet_quality(vertices_mm: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -81,11 +81,11 @@ def main(scene: Path, frames: int = typer.Option(8, min=1),
     def recording(self, poses):
         result = solve_frame(self, poses)
         solvers[:] = [self]
-        iterations.append(result.record.iterations)
+        iterations.append(result.record.iterations)  # a force-target press: its last trial's (trajectory.py)
         return result
 
     QuasiStaticSolver.solve_frame = recording
-    print(f"{scene}, physics device {setup.scene.physics.device}, {frames} frame(s)\n")
+    print(f"{scene}, physics device {physics_device(setup.scene.physics.device)}, {frames} frame(s)\n")
     print("| frame | Newton iterations | smallest check-point J | that tet's 4 check points | its centroid J | its depth "
           "(mm) | its boundary vertices | its quality (tets worse) | centroid J, all tets | tets with a check point "
           "below 0.5 |")

@@ -66,7 +66,8 @@ def _sequence_setup(scene: Path, index: int):
     return setup
 
 
-def _with_friction(setup, friction: float):
+def with_friction(setup, friction: float):
+    """The scene setup with every indenter's friction coefficient replaced by ``friction``."""
     placed = [dataclasses.replace(p, config=p.config.model_copy(update={"friction": friction})) for p in setup.indenters]
     return dataclasses.replace(setup, indenters=type(setup.indenters)(placed))
 
@@ -81,7 +82,7 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     if trajectory_from is not None:
         setup = _with_trajectories(setup, trajectory_from)
     if friction is not None:
-        setup = _with_friction(setup, friction)
+        setup = with_friction(setup, friction)
     records = []
     solve_frame = QuasiStaticSolver.solve_frame
 

@@ -1,29 +1,35 @@
-"""FEM error against run time on the press-and-slide scene: contact mesh size x friction's lag moves, with friction.
+"""FEM error against run time on a press-and-slide scene with friction: contact mesh size x lag moves x load steps.
 
     .venv/bin/python scripts/fem_slide_error_vs_runtime.py [--scene scenes/press_slide.toml] [--frames 10]
-        [--settings 1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4] [--reference 0.3/4] [--device cpu|cuda] [--mesh-only] [--no-write]
+        [--settings 1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4] [--reference 0.3/4] [--device cpu|cuda]
+        [--friction MU] [--friction-slip-mm MM] [--suffix S] [--mesh-only | --replot] [--no-write]
 
 ``scripts/fem_error_vs_runtime.py`` measures a frictionless press on a structured quarter block; datasets are made of
 presses *and slides* with friction, on fTetWild meshes of the whole gel. This script solves a scene as ``generate``
-does, once per setting EDGE/LAGS[/SPLIT]: ``[mesh] contact_edge_mm`` = EDGE (the element size over the contact region),
-``[physics] friction_lag_moves`` = LAGS (friction's lag moves per step, newton.py) and, with SPLIT, every trajectory
-segment's frames times SPLIT (each frame then solved in SPLIT load steps: friction is path dependent, so finer load steps
-are a refinement of their own), everything else as in the scene.
-The markers are the scene's own (each mesh embeds them anew), so every setting's marker centres compare with the
-reference's (the finest setting) frame by frame. Per setting: tets and P2 unknowns, physics seconds per frame (median
-over frames 1..N-1: frame 0 loads kernels), Newton iterations per frame (median) and the load steps each frame took (1,
-or more where a step was halved: friction is path dependent, so a halved step changes the solution, not only its
-cost), and against the reference: marker error, the largest and the RMS over all frames and markers (mm, and % of the
-largest reference marker displacement) and the largest per frame, and the largest force error over the frames,
-|F - F_ref| (the whole force vector) in % of the largest |F_ref|.
+does, once per setting EDGE/LAGS[/SPLIT]:
+- ``[mesh] contact_edge_mm`` = EDGE, the element size over the contact region (mm);
+- ``[physics] friction_lag_moves`` = LAGS, friction's lag moves per load step (newton.py);
+- SPLIT (default 1): every trajectory segment's frames times SPLIT, each frame then solved in SPLIT load steps on the
+  same mesh. Friction is path dependent, so finer load steps are a refinement of their own. Friction's smoothing
+  (``friction_slip_mm``) applies to each load step's slip, so a split also loosens it against the frame's motion.
 
-Writes BENCHMARKS.md section ``fem_slide_error_vs_runtime`` (``..._gpu`` for --device cuda), the plot
-docs/figures/fem_slide_error_vs_runtime[_gpu].png and the raw rows out/fem_slide_error_vs_runtime[_gpu].json
-(``--friction MU`` replaces every indenter's friction coefficient and appends ``_friction_MU`` to these names,
-``--friction-slip-mm MM`` friction's smoothing, ``[physics] friction_slip_mm``, and appends ``_slip_MM``; ``--suffix S``
-appends ``_S``).
-``--mesh-only`` meshes every setting (into the mesh cache, e.g. before carrying it to another machine) and stops;
-``--replot`` makes the section and plot again from the run's JSON, without solving.
+Everything else is as in the scene. The markers are the scene's own (each mesh embeds them anew), so every setting's
+marker centres compare with the reference's (a finer setting) frame by frame. Per setting:
+- tets and P2 unknowns;
+- physics seconds per frame, the median over frames 1..N-1 (frame 0 also makes the solver's kept matrices and graphs;
+  kernels are loaded by a 2-frame warm-up solve first);
+- Newton iterations per frame (median) and the load steps each frame took (SPLIT, or more where a step was halved);
+- against the reference: the marker error, the largest and the RMS over all frames and markers (mm, and % of the
+  largest reference marker displacement from rest), and the largest per frame; the force error, the largest over frames
+  and indenters of |F - F_ref| (each indenter's whole force vector, N) in % of the largest |F_ref|.
+A setting that fails (``SimulationFailed``) gets a row that says at which frame and why; the others go on.
+
+Writes BENCHMARKS.md section ``fem_slide_error_vs_runtime`` (``..._gpu`` where the physics runs on a GPU), the plot
+docs/figures/<section>.png and the raw rows out/<section>.json. ``--friction MU`` (every indenter's friction
+coefficient), ``--friction-slip-mm MM`` (``[physics] friction_slip_mm``) and ``--suffix S`` append ``_friction_MU``,
+``_slip_MM`` and ``_S`` to these names. ``--mesh-only`` meshes every setting (into the mesh cache, e.g. before carrying
+it to another machine) and stops; ``--replot`` makes the section and plot again from out/<section>.json without solving
+(give it the run's own --device, --friction, --friction-slip-mm and --suffix: they name the file).
 """
 
 from __future__ import annotations
@@ -43,12 +49,13 @@ import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmarks_md import machine_name, update_section  # noqa: E402
+from fem_frame_timing import with_friction  # noqa: E402
 
 from transtac_sim import meshing  # noqa: E402
 from transtac_sim.dataset.sequence import StageClock  # noqa: E402
 from transtac_sim.meshing import mesh_gel  # noqa: E402
 from transtac_sim.scene_setup import load_setup  # noqa: E402
-from transtac_sim.simulation import simulate_frames  # noqa: E402
+from transtac_sim.simulation import SimulationFailed, physics_device, simulate_frames  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,14 +85,10 @@ def parse_setting(text: str) -> Setting:
     return setting
 
 
-def with_indenters(setup, split: int = 1, friction: float | None = None):
-    """The scene setup with every trajectory segment's frames times ``split`` and, if given, every indenter's friction
-    coefficient replaced."""
-    placed = []
-    for p in setup.indenters:
-        trajectory = [seg.model_copy(update={"frames": seg.frames * split}) for seg in p.config.trajectory]
-        placed.append(dataclasses.replace(p, config=p.config.model_copy(
-            update={"trajectory": trajectory} | ({"friction": friction} if friction is not None else {}))))
+def with_split(setup, split: int):
+    """The scene setup with every trajectory segment's frames times ``split``."""
+    placed = [dataclasses.replace(p, config=p.config.model_copy(update={"trajectory": [
+        seg.model_copy(update={"frames": seg.frames * split}) for seg in p.config.trajectory]})) for p in setup.indenters]
     return dataclasses.replace(setup, indenters=type(setup.indenters)(placed))
 
 
@@ -93,7 +96,8 @@ def with_setting(setup, setting: Setting, device: str, friction: float | None = 
                  slip_mm: float | None = None):
     """The scene setup with the contact mesh size and lag moves replaced, and if given the physics device, every
     indenter's friction coefficient and friction's smoothing (not the split: ``solve`` splits the frames)."""
-    setup = with_indenters(setup, friction=friction)
+    if friction is not None:
+        setup = with_friction(setup, friction)
     scene = setup.scene
     physics = scene.physics.model_copy(update={"friction_lag_moves": setting.lag_moves}
                                        | ({"device": device} if device else {})
@@ -109,23 +113,24 @@ def p2_unknowns(tets: np.ndarray) -> int:
 
 
 def solve(setup, frames: int, split: int = 1) -> dict:
-    """Solves ``frames`` frames of ``setup`` with each frame split into ``split`` (every trajectory segment's frames
-    times ``split``, on the unsplit scene's mesh: the mesh cache would otherwise mesh the split scene anew, and fTetWild
-    makes another mesh): frame f is the split scene's frame split (f + 1) - 1 (frame k of a segment's n is at k/n of its
-    motion), its seconds, iterations and load steps the sums over the split frames up to it. Returns per-frame markers
-    (mm), forces (N), seconds, iterations and load steps, and the mesh's size."""
+    """Solves ``frames`` frames of ``setup`` with each frame split into ``split`` load steps (``with_split``), on the
+    unsplit scene's mesh: the mesh cache would mesh the split scene anew (its key holds the trajectory), and fTetWild
+    makes another mesh. Within a segment of n frames, 0-based frame j is at (j + 1)/n of its motion, so frame f is the
+    split scene's frame split (f + 1) - 1; its seconds, iterations and load steps are the sums over the split frames
+    since the previously kept one. Returns per-frame markers (mm, gel frame), each indenter's force (N), seconds,
+    iterations and load steps, and the mesh's size."""
     meshed = mesh_gel(setup)
     rows = {"markers": [], "forces": [], "seconds": [], "iterations": [], "substeps": []}
     seconds, iterations, steps = 0.0, 0, 0
     with mock.patch.object(meshing, "mesh_gel", lambda *args, **kwargs: meshed):  # simulation.py imports it per call
-        solved = list(simulate_frames(with_indenters(setup, split), frames * split, StageClock()))
+        solved = list(simulate_frames(with_split(setup, split), frames * split, StageClock()))
     for f in solved:
         seconds, iterations = seconds + float(f.solver["seconds"]), iterations + int(f.solver["iterations"])
         steps += int(f.solver["substeps"])
         if (f.frame + 1) % split:
             continue
         rows["markers"].append(np.asarray(f.markers_gel_mm).tolist())
-        rows["forces"].append(np.sum(f.forces_n, axis=0).tolist())
+        rows["forces"].append(np.asarray(f.forces_n).tolist())
         rows["seconds"].append(seconds)
         rows["iterations"].append(iterations)
         rows["substeps"].append(steps)
@@ -137,9 +142,9 @@ def errors(row: dict, ref: dict, rest_mm: np.ndarray) -> dict:
     """Marker and force errors of ``row`` against ``ref`` over all frames (see the module docstring)."""
     m, m_ref = np.array(row["markers"]), np.array(ref["markers"])
     diff = np.linalg.norm(m - m_ref, axis=2)  # (frames, markers)
-    scale = float(np.max(np.linalg.norm(m_ref - rest_mm, axis=2)))
-    F, F_ref = np.array(row["forces"]), np.array(ref["forces"])
-    force = float(np.max(np.linalg.norm(F - F_ref, axis=1)) / max(np.max(np.linalg.norm(F_ref, axis=1)), 1e-12))
+    scale = max(float(np.max(np.linalg.norm(m_ref - rest_mm, axis=2))), 1e-12)
+    F, F_ref = np.array(row["forces"]), np.array(ref["forces"])  # (frames, indenters, 3)
+    force = float(np.max(np.linalg.norm(F - F_ref, axis=-1)) / max(np.max(np.linalg.norm(F_ref, axis=-1)), 1e-12))
     rms = float(np.sqrt(np.mean(diff ** 2)))
     return {"marker_max_mm": float(diff.max()), "marker_rms_mm": rms, "marker_max_pct": 100 * float(diff.max()) / scale,
             "marker_max_per_frame_mm": diff.max(axis=1).tolist(),
@@ -147,8 +152,9 @@ def errors(row: dict, ref: dict, rest_mm: np.ndarray) -> dict:
 
 
 def summary(row: dict) -> dict:
-    return {"s_frame": statistics.median(row["seconds"][1:] or row["seconds"]),  # frame 0 loads kernels
-            "iterations_median": statistics.median(row["iterations"]), "iterations_total": sum(row["iterations"])}
+    """Median physics seconds per frame over frames 1..N-1 and median Newton iterations per frame."""
+    return {"s_frame": statistics.median(row["seconds"][1:] or row["seconds"]),
+            "iterations_median": statistics.median(row["iterations"])}
 
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
@@ -159,6 +165,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = [r for r in rows if "failed" not in r]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), dpi=90)
     for ax, key, label in ((axes[0], "marker_rms_mm", "marker error, RMS over frames and markers (mm)"),
                            (axes[1], "marker_max_mm", "marker error, largest (mm)")):
@@ -185,26 +192,37 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     fig.savefig(path)
 
 
-def measure(scene: Path, frames: int, chosen: list[Setting], ref_setting: Setting, device: str,
+def measure(scene: Path, frames: int, chosen: list[Setting], ref_setting: Setting, device: str, gpu: bool,
             friction: float | None, slip_mm: float | None) -> dict:
     """Solves the reference and every chosen setting (after a 2-frame warm-up); the rows and what ``report`` needs."""
     base = load_setup(scene)
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
-    solve(with_setting(base, chosen[0], device, friction, slip_mm), 2, chosen[0].split)  # kernels loaded outside timing
+    try:  # kernels loaded outside the timings; a setting that fails here gets its row below
+        solve(with_setting(base, chosen[0], device, friction, slip_mm), 2, chosen[0].split)
+    except SimulationFailed:
+        pass
     rest = np.asarray(base.sensor.markers_rest_gel_mm)
-    ref = solve(with_setting(base, ref_setting, device, friction, slip_mm), frames, ref_setting.split)
+    try:
+        ref = solve(with_setting(base, ref_setting, device, friction, slip_mm), frames, ref_setting.split)
+    except SimulationFailed as e:
+        raise SystemExit(f"the reference {ref_setting.label()} failed: {e}") from None
     ref |= ref_setting._asdict() | summary(ref)
     print(f"reference {ref_setting.label()}: {ref['tets']} tets, {ref['s_frame']:.2f} s/frame, {ref['iterations']}",
           flush=True)
     rows = []
     for setting in chosen:
-        r = solve(with_setting(base, setting, device, friction, slip_mm), frames, setting.split)
+        try:
+            r = solve(with_setting(base, setting, device, friction, slip_mm), frames, setting.split)
+        except SimulationFailed as e:
+            why = str(e) + (f" (counting the frames split in {setting.split})" if setting.split > 1 else "")
+            rows.append(setting._asdict() | {"failed": why})
+            print(f"{setting.label()}: failed, {why}", flush=True)
+            continue
         r |= setting._asdict() | summary(r) | errors(r, ref, rest)
         rows.append(r)
         print(f"{setting.label()}: {r['tets']} tets, {r['s_frame']:.2f} s/frame, iterations {r['iterations']}, markers "
               f"max {r['marker_max_mm']:.4f} rms {r['marker_rms_mm']:.4f} mm, force {r['force_max_pct']:.2f} %",
               flush=True)
-    gpu = (device or base.scene.physics.device).startswith("cuda")
     scene_name = scene.resolve().relative_to(ROOT) if scene.resolve().is_relative_to(ROOT) else scene
     meta = {"machine": machine_name("cuda" if gpu else "cpu"), "gpu": gpu, "minutes": (time.perf_counter() - t0) / 60,
             "load": [load0, os.getloadavg()[0]], "cpus": os.cpu_count(), "scene": str(scene_name), "frames": frames,
@@ -222,6 +240,10 @@ def report(data: dict, name: str) -> str:
               "marker err RMS mm (%) | marker err max per frame (mm) | force err max (% of max force) |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in [*rows, ref]:
+        if "failed" in r:
+            lines.append(f"| {r['edge_mm']:g} | {r['lag_moves']} | {r['split']} | failed: {r['failed']} |"
+                         + " |" * 8)
+            continue
         cells = [f"{r['edge_mm']:g}" + (" (reference)" if r is ref else ""), str(r["lag_moves"]), str(r["split"]),
                  str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}",
                  f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}", ", ".join(map(str, r["substeps"]))]
@@ -251,30 +273,36 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
          reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT] of the reference solution"),
          device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
-                                               "(0: frictionless); the section and plot names end in _friction_MU"),
+                                               "(0: frictionless); the names end in _friction_MU"),
          friction_slip_mm: float | None = typer.Option(None, min=1e-4, help="replace [physics] friction_slip_mm "
                                                        "(friction's smoothing); the names end in _slip_MM"),
          suffix: str = typer.Option("", help="appended to the section, plot and JSON names (e.g. load_steps)"),
          mesh_only: bool = typer.Option(False, help="mesh every setting (fills the mesh cache) and stop"),
-         replot: bool = typer.Option(False, help="no solving: the section and plot again from the run's JSON"),
+         replot: bool = typer.Option(False, help="no solving: the section and plot again from out/<section>.json "
+                                                 "(give the run's --device, --friction, --friction-slip-mm, --suffix)"),
          no_write: bool = typer.Option(False, help="print only: no BENCHMARKS.md, JSON or PNG")) -> None:
     chosen = [parse_setting(s) for s in settings.split(",") if s.strip()]
+    if not chosen:
+        raise typer.BadParameter("--settings names no setting")
     ref_setting = parse_setting(reference)
+    base = load_setup(scene)
+    if not base.has_contact:
+        raise typer.BadParameter(f"{scene}: no indenter touches the gel, so there is no FEM to compare")
     if mesh_only:
-        base = load_setup(scene)
         for edge in sorted({s.edge_mm for s in [ref_setting, *chosen]}):
             m = mesh_gel(with_setting(base, Setting(edge, 1), device)).mesh
             print(f"contact edge {edge:g} mm: {len(m.tets)} tets, {p2_unknowns(m.tets)} P2 unknowns", flush=True)
         return
-    gpu = (device or load_setup(scene).scene.physics.device).startswith("cuda")
+    gpu = physics_device(device or base.scene.physics.device).startswith("cuda")
     name = "fem_slide_error_vs_runtime" + ("_gpu" if gpu else "") + (
         f"_friction_{friction:g}" if friction is not None else "") + (
         f"_slip_{friction_slip_mm:g}" if friction_slip_mm is not None else "") + (f"_{suffix}" if suffix else "")
     out = ROOT / "out" / f"{name}.json"
-    if replot:
-        data = json.loads(out.read_text())
-    else:
-        data = measure(scene, frames, chosen, ref_setting, device, friction, friction_slip_mm)
+    if replot and not out.is_file():
+        raise typer.BadParameter(f"--replot reads {out}, which does not exist (same --device, --friction, "
+                                 "--friction-slip-mm and --suffix as the run?)")
+    data = json.loads(out.read_text()) if replot else measure(scene, frames, chosen, ref_setting, device, gpu, friction,
+                                                               friction_slip_mm)
     body = report(data, name)
     print(body)
     if no_write:

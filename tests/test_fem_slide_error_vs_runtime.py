@@ -33,29 +33,60 @@ def test_p2_unknowns_count_vertices_and_edges():
 
 def test_errors_against_the_reference():
     rest = np.zeros((2, 3))
-    ref = {"markers": [[[0, 0, 0], [0, 0, 0]], [[0, 0, -1.0], [0, 0, 0]]], "forces": [[0, 0, -1.0], [0, 0, -2.0]]}
-    row = {"markers": [[[0, 0, 0], [0, 0, 0]], [[0, 0, -1.0], [0.03, 0.04, 0]]], "forces": [[0, 0, -1.0], [0.2, 0, -2.0]]}
+    # two frames, two markers, two indenters: forces (frames, indenters, 3)
+    ref = {"markers": [[[0, 0, 0], [0, 0, 0]], [[0, 0, -1.0], [0, 0, 0]]],
+           "forces": [[[0, 0, -1.0], [0, 0, 0]], [[0, 0, -2.0], [0, 0, -0.5]]]}
+    row = {"markers": [[[0, 0, 0], [0, 0, 0]], [[0, 0, -1.0], [0.03, 0.04, 0]]],
+           "forces": [[[0, 0, -1.0], [0, 0, 0]], [[0.2, 0, -2.0], [-0.2, 0, -0.5]]]}
     e = study.errors(row, ref, rest)
     assert e["marker_max_mm"] == pytest.approx(0.05) and e["marker_max_per_frame_mm"] == pytest.approx([0.0, 0.05])
     assert e["marker_rms_mm"] == pytest.approx(np.sqrt(0.05 ** 2 / 4))  # one of four marker-frames is off
     assert e["largest_displacement_mm"] == pytest.approx(1.0) and e["marker_max_pct"] == pytest.approx(5.0)
-    assert e["force_max_pct"] == pytest.approx(10.0)  # 0.2 N off at a largest reference force of 2 N
+    # 0.2 N off on each indenter (opposite: a sum over indenters would see none) at a largest reference force of 2 N
+    assert e["force_max_pct"] == pytest.approx(10.0)
 
 
 def test_split_frames_keep_every_split_th_and_sum_its_cost(monkeypatch):
     setup = load_setup(FIXTURE)
     solved_frames = []
 
+    meshed = SimpleNamespace(mesh=SimpleNamespace(tets=np.array([[0, 1, 2, 3]])))
+
     def fake_frames(split_setup, frames, clock):
+        # mesh_gel imported as simulation.py imports it: the unsplit scene's mesh, not a new one
+        from transtac_sim.meshing import mesh_gel
+
+        assert mesh_gel(split_setup) is meshed
         solved_frames.append((frames, [seg.frames for seg in split_setup.indenters[0].config.trajectory]))
         for f in range(frames):
             yield SimpleNamespace(frame=f, markers_gel_mm=np.full((1, 3), float(f)), forces_n=[np.array([0, 0, -f])],
                                   solver={"seconds": 1.0, "iterations": f, "substeps": 1})
 
     monkeypatch.setattr(study, "simulate_frames", fake_frames)
-    monkeypatch.setattr(study, "mesh_gel", lambda s: SimpleNamespace(mesh=SimpleNamespace(tets=np.array([[0, 1, 2, 3]]))))
+    monkeypatch.setattr(study, "mesh_gel", lambda s: meshed)
     r = study.solve(setup, 3, split=2)
     original = [seg.frames for seg in setup.indenters[0].config.trajectory]
     assert solved_frames == [(6, [2 * n for n in original])]  # every segment's frames doubled, 6 frames solved
     assert [m[0][0] for m in r["markers"]] == [1.0, 3.0, 5.0]  # frame f is the split scene's frame 2 (f + 1) - 1
     assert r["seconds"] == [2.0, 2.0, 2.0] and r["iterations"] == [0 + 1, 2 + 3, 4 + 5] and r["substeps"] == [2, 2, 2]
+
+
+def test_a_failed_setting_gets_its_row_and_the_others_go_on(monkeypatch):
+    def fake_solve(setup, frames, split=1):
+        if setup.scene.mesh.contact_edge_mm == 2.0:
+            raise study.SimulationFailed(1, "did not converge")
+        shift = 0.01 if setup.scene.mesh.contact_edge_mm == 1.8 else 0.0
+        markers = [[[0.0, 0.0, -0.5 * (f + 1) + shift]] for f in range(frames)]
+        return {"markers": markers, "forces": [[[0.0, 0.0, -1.0]]] * frames, "seconds": [1.0] * frames,
+                "iterations": [3] * frames, "substeps": [split] * frames, "tets": 10, "dofs": 30}
+
+    monkeypatch.setattr(study, "solve", fake_solve)
+    settings = [study.Setting(2.0, 4), study.Setting(1.8, 4, 2)]
+    data = study.measure(FIXTURE, 2, settings, study.Setting(1.5, 4), "cpu", False, None, None)
+    failed, solved = data["rows"]
+    assert failed["failed"] == "frame 1: did not converge" and "marker_max_mm" not in failed
+    assert solved["marker_max_mm"] == pytest.approx(0.01) and solved["split"] == 2
+    text = study.report(data, "fem_slide_error_vs_runtime")
+    rows = [line for line in text.splitlines() if line.startswith("| ") and "contact edge" not in line]
+    assert [line.count("|") for line in rows] == [13, 13, 13]  # 12 cells each: the failed row too
+    assert "failed: frame 1: did not converge" in rows[0] and rows[2].startswith("| 1.5 (reference)")

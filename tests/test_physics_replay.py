@@ -30,3 +30,36 @@ def test_a_key_launched_once_holds_its_objects_until_cleared():
     cache.clear()
     gc.collect()
     assert alive() is None
+
+
+def test_a_key_is_captured_on_its_second_use_and_replayed_after(monkeypatch):
+    from transtac_sim.physics import replay
+
+    class FakeCapture:  # stands in for wp.ScopedCapture: records that a capture ran
+        def __init__(self, **kwargs):
+            self.graph = object()
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    replayed = []
+    monkeypatch.setattr(replay.wp, "ScopedCapture", FakeCapture)
+    monkeypatch.setattr(replay.wp, "capture_launch", lambda graph: replayed.append(graph))
+    cache = GraphCache("cpu")
+    cache.device = SimpleNamespace(is_cuda=True)
+    subset, launched = _Subset(), []
+    alive = weakref.ref(subset)
+    key = ("hessian", id(subset))
+    for _ in range(4):  # launched, captured (and launched from the graph), then replayed twice
+        cache.run(key, (subset,), lambda: launched.append("launch"))
+    assert launched == ["launch", "launch"] and cache.captures == 1 and len(replayed) == 3
+    assert len(set(map(id, replayed))) == 1  # the one captured graph
+    del subset
+    gc.collect()
+    assert alive() is not None  # held by the graph's entry
+    cache.clear()
+    gc.collect()
+    assert alive() is None

@@ -7,17 +7,16 @@ also loads its kernels and makes any buffer or matrix it keeps), captures it the
 replays the graph from then on. A key names what a graph bakes in and can change: the displacement field's address and
 the values passed by value (the indenters' struct, whose poses change each load step, their contact stiffness, raised
 inside Newton, and for the Hessian its (geometric, clamp) pair, the barrier flag and the contact side subset, whose
-matrix is made anew with it); the objects in ``keep`` are held from a key's first launch on, so that an address in a
-key is not reused by another object while the key is known. (Held only once captured, a contact side subset that was
-replaced after one launch was freed, the next one was made at its address, and its first Hessian was taken for a
-second use and captured: its new matrix was then made inside the capture, which Warp refuses. press_slide with
-``contact_edge_mm = 0.5`` on an H100, scripts/fem_slide_error_vs_runtime.py.) Every other array a graph reads (u_prev,
-the contact state, the material parameters, the sums and matrices it writes) must be made once for the solver and only
-changed in place, as solver.py and assembly.py do: a replay reads their current values. ``clear`` drops every graph (the solver calls it at each load
-step, whose indenter struct is new). On the CPU (no graphs) the sequence is launched every time. press_slide on an
-H100: the energy 1.11-1.14 -> 0.69 ms per evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md
-``fem_graph_replay_gpu``); then on an H200 the gradient 1.6 -> 0.9 ms, the Hessian 2.0 -> 1.4-1.5 ms, the frames
-0.90-0.93x (``fem_gradient_hessian_replay_gpu``).
+matrix is made anew with it); the objects in ``keep`` are held from a key's first launch on, so that an address in a key
+is not reused by another object while the key is known: held only once captured, a contact side subset replaced after
+one launch was freed, the next one was made at its address and captured on its first use, and its new matrix was made
+inside the capture, which Warp refuses (press_slide with ``contact_edge_mm = 0.5`` on an H100). Every other array a
+graph reads (u_prev, the contact state, the material parameters, the sums and matrices it writes) must be made once for
+the solver and only changed in place, as solver.py and assembly.py do: a replay reads their current values. ``clear``
+drops every graph (the solver calls it at each load step, whose indenter struct is new). On the CPU (no graphs) the
+sequence is launched every time. press_slide on an H100: the energy 1.11-1.14 -> 0.69 ms per evaluation, det F 0.30-0.31
+-> 0.14 ms, the frames 0.95x (BENCHMARKS.md ``fem_graph_replay_gpu``); then on an H200 the gradient 1.6 -> 0.9 ms, the
+Hessian 2.0 -> 1.4-1.5 ms, the frames 0.90-0.93x (``fem_gradient_hessian_replay_gpu``).
 """
 
 from __future__ import annotations
@@ -52,6 +51,7 @@ class GraphCache:
         with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
             launches()
         self._graphs[key] = (keep, capture.graph)
+        del self._seen[key]  # held by the graph's entry from now on
         self.captures += 1
         wp.capture_launch(capture.graph)
 
