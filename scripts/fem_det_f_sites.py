@@ -4,12 +4,12 @@
 
 The solver record's ``min_det_f`` is the smallest det F = J at the inversion barrier's 4 check points per tet
 (elasticity.py; the line search rejects any step that makes one <= 0). The volumetric term holds J at one point per
-tet, the centroid (P2-P0): there J stays near 1 for a gel of Poisson ratio 0.49, while between that point and a
-tet's corners J varies with the quadratic displacement, held by the shear term alone. This script tells the two
-apart. Per frame: the smallest check-point J and, for the tet that holds it, its 4 check-point values, its centroid J,
-its depth (its rest centroid below the gel's top face, mm), how many of its vertices lie on the boundary and its shape quality
-(6 sqrt(2) V / l_rms^3: 1 for a regular tet) with the fraction of tets of worse quality; over the whole mesh, the range
-of the centroid J and the number of tets with a check-point J below 0.5.
+tet, the centroid (P2-P0): there J stays near 1 for a gel of Poisson ratio 0.49, while between that point and a tet's
+corners J varies with the quadratic displacement, held by the shear term alone. This script tells the two apart. Per
+frame: the smallest check-point J and, for the tet that holds it, its 4 check-point values, its centroid J, its depth
+(its rest centroid below the gel's top face, mm), how many of its vertices lie on the boundary and its shape quality
+(6 sqrt(2) V / l_rms^3: 1 for a regular tet) with the fraction of tets of worse quality; over the whole mesh, the
+range of the centroid J and the number of tets with a check-point J below 0.5.
 """
 
 from __future__ import annotations
@@ -65,7 +65,8 @@ def frame_row(frame: int, iterations: int, check: np.ndarray, centroid: np.ndarr
     depth = top_mm - float(vertices_mm[tets[t]].mean(axis=0)[2])
     worse = float(np.mean(quality < quality[t]))
     return (f"| {frame} | {iterations} | {check[t].min():.3f} | {', '.join(f'{x:.3f}' for x in check[t])} | "
-            f"{centroid[t]:.3f} | {depth:.2f} | {int(on_boundary[tets[t]].sum())} | {quality[t]:.2f} ({100 * worse:.0f} %) "
+            f"{centroid[t]:.3f} | {depth:.2f} | {int(on_boundary[tets[t]].sum())} | "
+            f"{quality[t]:.2f} ({100 * worse:.0f} %) "
             f"| {centroid.min():.3f} to {centroid.max():.3f} | {int(np.sum(check.min(axis=1) < 0.5))} |")
 
 
@@ -86,9 +87,9 @@ def main(scene: Path, frames: int = typer.Option(8, min=1),
 
     QuasiStaticSolver.solve_frame = recording
     print(f"{scene}, physics device {physics_device(setup.scene.physics.device)}, {frames} frame(s)\n")
-    print("| frame | Newton iterations | smallest check-point J | that tet's 4 check points | its centroid J | its depth "
-          "(mm) | its boundary vertices | its quality (tets worse) | centroid J, all tets | tets with a check point "
-          "below 0.5 |")
+    print("| frame | Newton iterations | smallest check-point J | that tet's 4 check points | its centroid J | "
+          "its depth (mm) | its boundary vertices | its quality (tets worse) | centroid J, all tets | "
+          "tets with a check point below 0.5 |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     try:
         for f in simulate_frames(setup, frames, StageClock()):

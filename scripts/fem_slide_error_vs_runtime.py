@@ -87,8 +87,10 @@ def parse_setting(text: str) -> Setting:
 
 def with_split(setup, split: int):
     """The scene setup with every trajectory segment's frames times ``split``."""
-    placed = [dataclasses.replace(p, config=p.config.model_copy(update={"trajectory": [
-        seg.model_copy(update={"frames": seg.frames * split}) for seg in p.config.trajectory]})) for p in setup.indenters]
+    placed = []
+    for p in setup.indenters:
+        trajectory = [seg.model_copy(update={"frames": seg.frames * split}) for seg in p.config.trajectory]
+        placed.append(dataclasses.replace(p, config=p.config.model_copy(update={"trajectory": trajectory})))
     return dataclasses.replace(setup, indenters=type(setup.indenters)(placed))
 
 
@@ -235,9 +237,10 @@ def measure(scene: Path, frames: int, chosen: list[Setting], ref_setting: Settin
 def report(data: dict, name: str) -> str:
     """The BENCHMARKS.md section's markdown."""
     ref, rows, meta = data["reference"], data["rows"], data["meta"]
-    header = ("| contact edge (mm) | lag moves a step | each frame split into | tets | P2 unknowns | physics s / frame "
-              "(median) | Newton it. / frame (median; all frames) | load steps taken per frame | marker err max mm (%) | "
-              "marker err RMS mm (%) | marker err max per frame (mm) | force err max (% of max force) |")
+    header = ("| contact edge (mm) | lag moves a step | each frame split into | tets | P2 unknowns | "
+              "physics s / frame (median) | Newton it. / frame (median; all frames) | load steps taken per frame | "
+              "marker err max mm (%) | marker err RMS mm (%) | marker err max per frame (mm) | "
+              "force err max (% of max force) |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in [*rows, ref]:
         if "failed" in r:
@@ -246,9 +249,11 @@ def report(data: dict, name: str) -> str:
             continue
         cells = [f"{r['edge_mm']:g}" + (" (reference)" if r is ref else ""), str(r["lag_moves"]), str(r["split"]),
                  str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}",
-                 f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}", ", ".join(map(str, r["substeps"]))]
+                 f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}",
+                 ", ".join(map(str, r["substeps"]))]
         cells += ["-"] * 4 if r is ref else [
-            f"{r['marker_max_mm']:.4f} ({r['marker_max_pct']:.2f})", f"{r['marker_rms_mm']:.4f} ({r['marker_rms_pct']:.2f})",
+            f"{r['marker_max_mm']:.4f} ({r['marker_max_pct']:.2f})",
+            f"{r['marker_rms_mm']:.4f} ({r['marker_rms_pct']:.2f})",
             ", ".join(f"{e:.3f}" for e in r["marker_max_per_frame_mm"]), f"{r['force_max_pct']:.2f}"]
         lines.append("| " + " | ".join(cells) + " |")
     changed = (f"every indenter's friction set to {meta['friction']:g}, " if meta["friction"] is not None else "") + (
@@ -257,9 +262,9 @@ def report(data: dict, name: str) -> str:
         f"Machine: {meta['machine']}. Command: `{meta['command'].strip()}` ({meta['minutes']:.0f} min in all; load "
         f"average {meta['load'][0]:.1f} at the start, {meta['load'][1]:.1f} at the end, on {meta['cpus']} CPUs).",
         "",
-        f"Scene: `{meta['scene']}`, {meta['frames']} frames, {changed}{meta['markers']} markers (largest reference marker "
-        f"displacement {meta['largest_displacement_mm']:.3f} mm). Errors against the reference over all frames; see the "
-        "script's docstring.",
+        f"Scene: `{meta['scene']}`, {meta['frames']} frames, {changed}{meta['markers']} markers (largest reference "
+        f"marker displacement {meta['largest_displacement_mm']:.3f} mm). Errors against the reference over all frames; "
+        "see the script's docstring.",
         "",
         *lines,
         "",
