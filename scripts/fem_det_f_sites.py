@@ -91,15 +91,16 @@ def main(scene: Path, frames: int = typer.Option(8, min=1),
           "its depth (mm) | its boundary vertices | its quality (tets worse) | centroid J, all tets | "
           "tets with a check point below 0.5 |")
     print("|---|---|---|---|---|---|---|---|---|---|")
+    mesh = None  # (quality, boundary vertices, top z): the rest mesh's, found once
     try:
         for f in simulate_frames(setup, frames, StageClock()):
             if not solvers:  # a frame without contact: nothing deformed
                 continue
             solver = solvers[0]
+            V, T = solver.vertices_mm, solver.tets
+            mesh = mesh or (tet_quality(V, T), boundary_vertices(T), float(V[:, 2].max()))
             check, centroid = det_f_fields(solver)
-            print(frame_row(f.frame, iterations[-1], check, centroid, tet_quality(solver.vertices_mm, solver.tets),
-                            boundary_vertices(solver.tets), solver.vertices_mm, solver.tets,
-                            float(solver.vertices_mm[:, 2].max())), flush=True)
+            print(frame_row(f.frame, iterations[-1], check, centroid, mesh[0], mesh[1], V, T, mesh[2]), flush=True)
     finally:
         QuasiStaticSolver.solve_frame = solve_frame
 

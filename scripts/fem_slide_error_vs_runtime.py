@@ -140,11 +140,16 @@ def solve(setup, frames: int, split: int = 1) -> dict:
     return rows | {"tets": int(len(meshed.mesh.tets)), "dofs": p2_unknowns(meshed.mesh.tets)}
 
 
+def largest_displacement(ref: dict, rest_mm: np.ndarray) -> float:
+    """The largest marker displacement from rest over the reference's frames (mm)."""
+    return float(np.max(np.linalg.norm(np.array(ref["markers"]) - rest_mm, axis=2)))
+
+
 def errors(row: dict, ref: dict, rest_mm: np.ndarray) -> dict:
     """Marker and force errors of ``row`` against ``ref`` over all frames (see the module docstring)."""
     m, m_ref = np.array(row["markers"]), np.array(ref["markers"])
     diff = np.linalg.norm(m - m_ref, axis=2)  # (frames, markers)
-    scale = max(float(np.max(np.linalg.norm(m_ref - rest_mm, axis=2))), 1e-12)
+    scale = max(largest_displacement(ref, rest_mm), 1e-12)
     F, F_ref = np.array(row["forces"]), np.array(ref["forces"])  # (frames, indenters, 3)
     force = float(np.max(np.linalg.norm(F - F_ref, axis=-1)) / max(np.max(np.linalg.norm(F_ref, axis=-1)), 1e-12))
     rms = float(np.sqrt(np.mean(diff ** 2)))
@@ -194,10 +199,10 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     fig.savefig(path)
 
 
-def measure(scene: Path, frames: int, chosen: list[Setting], ref_setting: Setting, device: str, gpu: bool,
+def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: Setting, device: str, gpu: bool,
             friction: float | None, slip_mm: float | None) -> dict:
-    """Solves the reference and every chosen setting (after a 2-frame warm-up); the rows and what ``report`` needs."""
-    base = load_setup(scene)
+    """Solves the reference and every chosen setting of ``base`` (the setup of ``scene``) after a 2-frame warm-up;
+    the rows and what ``report`` needs."""
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
     try:  # kernels loaded outside the timings; a setting that fails here gets its row below
         solve(with_setting(base, chosen[0], device, friction, slip_mm), 2, chosen[0].split)
@@ -228,7 +233,7 @@ def measure(scene: Path, frames: int, chosen: list[Setting], ref_setting: Settin
     scene_name = scene.resolve().relative_to(ROOT) if scene.resolve().is_relative_to(ROOT) else scene
     meta = {"machine": machine_name("cuda" if gpu else "cpu"), "gpu": gpu, "minutes": (time.perf_counter() - t0) / 60,
             "load": [load0, os.getloadavg()[0]], "cpus": os.cpu_count(), "scene": str(scene_name), "frames": frames,
-            "markers": len(rest), "largest_displacement_mm": errors(ref, ref, rest)["largest_displacement_mm"],
+            "markers": len(rest), "largest_displacement_mm": largest_displacement(ref, rest),
             "friction": friction, "slip_mm": slip_mm, "reference": ref_setting.label(),
             "command": ".venv/bin/python scripts/fem_slide_error_vs_runtime.py " + " ".join(sys.argv[1:])}
     return {"reference": ref, "rows": rows, "meta": meta}
@@ -306,8 +311,8 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
     if replot and not out.is_file():
         raise typer.BadParameter(f"--replot reads {out}, which does not exist (same --device, --friction, "
                                  "--friction-slip-mm and --suffix as the run?)")
-    data = json.loads(out.read_text()) if replot else measure(scene, frames, chosen, ref_setting, device, gpu, friction,
-                                                               friction_slip_mm)
+    data = json.loads(out.read_text()) if replot else measure(scene, base, frames, chosen, ref_setting, device, gpu,
+                                                               friction, friction_slip_mm)
     body = report(data, name)
     print(body)
     if no_write:

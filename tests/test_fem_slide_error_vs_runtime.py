@@ -82,7 +82,7 @@ def test_a_failed_setting_gets_its_row_and_the_others_go_on(monkeypatch):
 
     monkeypatch.setattr(study, "solve", fake_solve)
     settings = [study.Setting(2.0, 4), study.Setting(1.8, 4, 2)]
-    data = study.measure(FIXTURE, 2, settings, study.Setting(1.5, 4), "cpu", False, None, None)
+    data = study.measure(FIXTURE, load_setup(FIXTURE), 2, settings, study.Setting(1.5, 4), "cpu", False, None, None)
     failed, solved = data["rows"]
     assert failed["failed"] == "frame 1: did not converge" and "marker_max_mm" not in failed
     assert solved["marker_max_mm"] == pytest.approx(0.01) and solved["split"] == 2
