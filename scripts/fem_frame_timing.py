@@ -170,14 +170,13 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
          estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
-         estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION) -> None:
+         estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
+         friction_memory: bool = solver_variants.FRICTION_MEMORY_OPTION) -> None:
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor)
-    if max_newton_iterations is not None:
-        import functools
-
-        from transtac_sim import physics  # simulation.py imports SolverSettings from here when it solves
-
-        physics.SolverSettings = functools.partial(physics.SolverSettings, max_newton_iterations=max_newton_iterations)
+    solver_variants.solver_settings(friction_memory=friction_memory, **(
+        {"max_newton_iterations": max_newton_iterations} if max_newton_iterations is not None else {}))
+    if not friction_memory:
+        print("friction's sticking stretch is not carried from step to step (--no-friction-memory)")
     result = run(scene, degree, frames, trajectory_from, sequence, friction_lag_moves, friction)
     if benchmarks:
         from benchmarks_md import update_section

@@ -2,7 +2,8 @@
 
     .venv/bin/python scripts/fem_slide_error_vs_runtime.py [--scene scenes/press_slide.toml] [--frames 10]
         [--settings 1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4] [--reference 0.3/4] [--device cpu|cuda]
-        [--friction MU] [--friction-slip-mm MM] [--suffix S] [--mesh-only | --replot] [--no-write]
+        [--friction MU] [--friction-slip-mm MM] [--no-friction-memory] [--suffix S] [--mesh-only | --replot]
+        [--no-write]
 
 ``scripts/fem_error_vs_runtime.py`` measures a frictionless press on a structured quarter block; datasets are made of
 presses *and slides* with friction, on fTetWild meshes of the whole gel. This script solves a scene as ``generate``
@@ -27,7 +28,8 @@ A setting that fails (``SimulationFailed``) gets a row that says at which frame 
 Writes BENCHMARKS.md section ``fem_slide_error_vs_runtime`` (``..._gpu`` where the physics runs on a GPU), the plot
 docs/figures/<section>.png and the raw rows out/<section>.json. ``--friction MU`` (every indenter's friction
 coefficient), ``--friction-slip-mm MM`` (``[physics] friction_slip_mm``) and ``--suffix S`` append ``_friction_MU``,
-``_slip_MM`` and ``_S`` to these names. ``--mesh-only`` meshes every setting (into the mesh cache, e.g. before carrying
+``_slip_MM`` and ``_S`` to these names, and ``--no-friction-memory`` (each step's slip measured afresh, the friction
+model before contact.py carried its sticking stretch) ``_no_memory``. ``--mesh-only`` meshes every setting (into the mesh cache, e.g. before carrying
 it to another machine) and stops; ``--replot`` makes the section and plot again from out/<section>.json without solving
 (give it the run's own --device, --friction, --friction-slip-mm and --suffix: they name the file).
 """
@@ -48,6 +50,7 @@ import numpy as np
 import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import solver_variants  # noqa: E402
 from benchmarks_md import machine_name, update_section  # noqa: E402
 from fem_frame_timing import with_friction  # noqa: E402
 
@@ -235,6 +238,7 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
             "load": [load0, os.getloadavg()[0]], "cpus": os.cpu_count(), "scene": str(scene_name), "frames": frames,
             "markers": len(rest), "largest_displacement_mm": largest_displacement(ref, rest),
             "friction": friction, "slip_mm": slip_mm, "reference": ref_setting.label(),
+            "friction_memory": solver_variants.friction_memory(),
             "command": ".venv/bin/python scripts/fem_slide_error_vs_runtime.py " + " ".join(sys.argv[1:])}
     return {"reference": ref, "rows": rows, "meta": meta}
 
@@ -262,7 +266,8 @@ def report(data: dict, name: str) -> str:
             ", ".join(f"{e:.3f}" for e in r["marker_max_per_frame_mm"]), f"{r['force_max_pct']:.2f}"]
         lines.append("| " + " | ".join(cells) + " |")
     changed = (f"every indenter's friction set to {meta['friction']:g}, " if meta["friction"] is not None else "") + (
-        f"friction_slip_mm {meta['slip_mm']:g}, " if meta["slip_mm"] is not None else "")
+        f"friction_slip_mm {meta['slip_mm']:g}, " if meta["slip_mm"] is not None else "") + (
+        "" if meta.get("friction_memory", False) else "friction's sticking stretch not carried from step to step, ")
     return "\n".join([
         f"Machine: {meta['machine']}. Command: `{meta['command'].strip()}` ({meta['minutes']:.0f} min in all; load "
         f"average {meta['load'][0]:.1f} at the start, {meta['load'][1]:.1f} at the end, on {meta['cpus']} CPUs).",
@@ -279,8 +284,8 @@ def report(data: dict, name: str) -> str:
 
 def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frames: int = typer.Option(10, min=2),
          settings: str = typer.Option("1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4",
-                                      help="EDGE/LAGS[/SPLIT],...: contact edge (mm) / lag moves / frame split"),
-         reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT] of the reference solution"),
+                                      help="EDGE/LAGS or EDGE/LAGS/SPLIT, comma-separated: contact edge (mm) / lag moves / load steps a frame"),
+         reference: str = typer.Option("0.3/4", help="EDGE/LAGS or EDGE/LAGS/SPLIT of the reference solution"),
          device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
                                                "(0: frictionless); the names end in _friction_MU"),
@@ -290,7 +295,9 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
          mesh_only: bool = typer.Option(False, help="mesh every setting (fills the mesh cache) and stop"),
          replot: bool = typer.Option(False, help="no solving: the section and plot again from out/<section>.json "
                                                  "(give the run's --device, --friction, --friction-slip-mm, --suffix)"),
-         no_write: bool = typer.Option(False, help="print only: no BENCHMARKS.md, JSON or PNG")) -> None:
+         no_write: bool = typer.Option(False, help="print only: no BENCHMARKS.md, JSON or PNG"),
+         friction_memory: bool = solver_variants.FRICTION_MEMORY_OPTION) -> None:
+    solver_variants.solver_settings(friction_memory=friction_memory)
     chosen = [parse_setting(s) for s in settings.split(",") if s.strip()]
     if not chosen:
         raise typer.BadParameter("--settings names no setting")
@@ -306,7 +313,8 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
     gpu = physics_device(device or base.scene.physics.device).startswith("cuda")
     name = "fem_slide_error_vs_runtime" + ("_gpu" if gpu else "") + (
         f"_friction_{friction:g}" if friction is not None else "") + (
-        f"_slip_{friction_slip_mm:g}" if friction_slip_mm is not None else "") + (f"_{suffix}" if suffix else "")
+        f"_slip_{friction_slip_mm:g}" if friction_slip_mm is not None else "") + (
+        "" if friction_memory else "_no_memory") + (f"_{suffix}" if suffix else "")
     out = ROOT / "out" / f"{name}.json"
     if replot and not out.is_file():
         raise typer.BadParameter(f"--replot reads {out}, which does not exist (same --device, --friction, "

@@ -4,6 +4,8 @@ the default in one run (BENCHMARKS.md ``fem_slide_iterations_gpu``). Imported as
 
 from __future__ import annotations
 
+import functools
+
 import typer
 
 from transtac_sim.physics import device_linear, newton
@@ -33,6 +35,21 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
             [] if warm_start == "none" else [g for g in guesses(self, step) if g is not None])
 
 
+def solver_settings(**fields) -> None:
+    """Every ``SolverSettings`` that simulation.py makes from now on takes ``fields`` (it imports the class from
+    ``transtac_sim.physics`` when it solves)."""
+    from transtac_sim import physics
+
+    physics.SolverSettings = functools.partial(physics.SolverSettings, **fields)
+
+
+def friction_memory() -> bool:
+    """``SolverSettings.friction_memory`` as ``solver_settings`` left it."""
+    from transtac_sim import physics
+
+    return physics.SolverSettings().friction_memory
+
+
 WARM_START_OPTION = typer.Option("all", help="the guesses a (sub)step may start from: all, extrapolated (no carried "
                                  "guess on slides) or none")
 EXACT_BELOW_OPTION = typer.Option(newton.EXACT_BELOW, min=0.0, help="newton.EXACT_BELOW (multiples of newton_tol_mm)")
@@ -43,3 +60,6 @@ ESTIMATE_RTOL_OPTION = typer.Option(device_linear.ESTIMATE_RTOL, min=0.0, max=1.
 ESTIMATE_CAP_FACTOR_OPTION = typer.Option(device_linear.ESTIMATE_CAP_FACTOR, min=0.0,
                                           help="device_linear.ESTIMATE_CAP_FACTOR")
 FRICTION_LAG_MOVES_OPTION = typer.Option(None, min=1, help="replace the scene's [physics] friction_lag_moves (per step)")
+FRICTION_MEMORY_OPTION = typer.Option(True, "--friction-memory/--no-friction-memory",
+                                      help="carry friction's sticking stretch from step to step "
+                                      "(SolverSettings.friction_memory; off: each step's slip afresh, the model before)")

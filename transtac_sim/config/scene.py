@@ -74,8 +74,9 @@ class Physics(_Strict):
     newton_tol_mm: float = Field(default=1e-4, gt=0.0, le=1.0)
     device: Literal["auto", "cpu", "cuda"] = "auto"
     friction_slip_mm: float = Field(
-        default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point creeps up to this far per "
-        "frame before friction reaches mu times the pressure (0.01: stricter sticking, about 1.5x the Newton iterations)")
+        default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point moves up to this far against "
+        "the indenter (an elastic stretch, kept from frame to frame) before friction reaches mu times the pressure "
+        "(0.01: stricter sticking, about 1.5x the Newton iterations)")
     friction_lag_moves: int = Field(
         default=4, ge=1, le=50, description="friction's normal pressure and tangent plane are lagged and moved to "
         "the current state at most this often per load step: 4 matches a 12-move solution's friction forces within "

@@ -79,6 +79,13 @@ class Assembly:
             fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
                             values=self._contact_values(ind))
 
+    def _keep_stick(self, ind) -> None:
+        """Friction's stretch at the converged u, carried into the next step (contact.py ``stick_form``); left at 0
+        without ``SolverSettings.friction_memory`` (each step's slip then starts from no traction)."""
+        if ind.count and self.settings.friction_memory:
+            fem.interpolate(contact.stick_form, at=self._q_contact, fields=self._contact_fields(self.u),
+                            values=self._contact_values(ind))
+
     def _barrier_values(self) -> dict:
         return {"params": self._params, "stiffness": self.settings.barrier_stiffness,
                 "j_hat": self.settings.barrier_det_f}

@@ -10,15 +10,19 @@ At a boundary point of the gel with current position x = X + u(X):
   which stays accurate for tiny penetrations where the float32 closest point would not. Energy k/2 g^2 per unit area, so the gel feels the traction
   k g n (MPa). ``k`` (N/mm^3) is the penalty stiffness; at equilibrium the penetration is p/k for a contact
   pressure p, which the solver checks against a stated tolerance.
-- Friction (Coulomb, coefficient mu_f), on the incremental slip since the previous (sub)step, with the
-  normal pressure lam = k g and the normal n lagged at displacement u_lag (IPC-style):
-      dx  = x - T_i T_i,prev^-1 x_prev   (motion of the gel point relative to the indenter)
+- Friction (Coulomb, coefficient mu_f), on the slip since the previous (sub)step plus the sticking stretch s carried
+  from it, with the normal pressure lam = k g and the normal n lagged at displacement u_lag (IPC-style):
+      dx  = x - T_i T_i,prev^-1 (x_prev - s)   (motion of the gel point relative to the indenter)
       u_t = (I - n n^T) dx,  y = |u_t|
       E_f = mu_f lam f0(y),  f0(y) = -y^3/(3 eps^2) + y^2/eps + eps/3 (y < eps), y otherwise,
   whose derivative f1 = f0' = -y^2/eps^2 + 2y/eps (y < eps), 1 otherwise, gives the traction
   -mu_f lam f1(y) u_t/y: sticking springs below a slip of ``eps`` (mm), the Coulomb bound above.
   Its Hessian (exact for the lagged lam and n, positive semi-definite since f1' >= 0 and f1/y >= 0) is
       mu_f lam [ f1(y)/y (I - n n^T) + (f1'(y) - f1(y)/y) t t^T ],   t = u_t / y.
+  At a converged step s becomes u_t, shortened to eps where it slipped (y > eps; f1(eps) = 1) and 0 out of contact
+  (``stick_form``): the next step starts with the traction this one ended with. Without s (IPC's incremental form,
+  made for small time steps) every quasi-static frame started from no friction, so a sticking point crept up to
+  eps per frame and a held contact relaxed (``SolverSettings.friction_memory``).
 
 All quantities are integrated over the boundary faces of the gel with a Gauss rule. The lagged quantities and
 the current traction and stiffnesses are stored per quadrature point (``ContactState``) before assembly.
@@ -197,12 +201,6 @@ def _df1(y: wp.float64, eps: wp.float64):
     return _f(0.0)
 
 
-@wp.func
-def tangential_slip(ind: Indenters, i: int, x: wp.vec3d, x_prev: wp.vec3d, n: wp.vec3d):
-    dx = x - _transform(ind.relative[i], x_prev)
-    return dx - wp.dot(dx, n) * n
-
-
 @wp.struct
 class ContactState:
     """Per contact quadrature point q and indenter i (index q * count + i), so that the assembly of the
@@ -216,6 +214,16 @@ class ContactState:
     k_slip_dir: wp.array(dtype=wp.float64)  # its correction along the slip: mu_f k g_lag (f1' - f1/y)
     slip_dir: wp.array(dtype=wp.vec3d)  # unit slip direction t
     traction: wp.array(dtype=wp.vec3d)  # total traction on the gel (MPa), index q
+    stick: wp.array(dtype=wp.vec3d)  # friction's stretch carried into this step (mm, gel frame at the step's start)
+    stick_next: wp.array(dtype=wp.vec3d)  # the same at the end of the last converged step (``stick_form``)
+
+
+@wp.func
+def tangential_slip(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_prev: wp.vec3d):
+    """u_t: the slip since the anchor x_prev - stick (carried along with indenter i), in the lagged tangent plane."""
+    dx = x - _transform(ind.relative[i], x_prev - st.stick[j])
+    n = st.lag_n[j]
+    return dx - wp.dot(dx, n) * n
 
 
 @wp.func
@@ -233,7 +241,7 @@ def traction(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_pr
     t_dir = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
     gl = st.lag_g[j]
     if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-        ut = tangential_slip(ind, i, x, x_prev, st.lag_n[j])
+        ut = tangential_slip(ind, st, i, j, x, x_prev)
         y = wp.length(ut)
         c = ind.friction[i] * ind.stiffness * gl
         k_t = c * _f1_over_y(y, ind.slip_eps)
@@ -252,6 +260,24 @@ def lag_form(s: fem.Sample, domain: fem.Domain, u_lag: fem.Field, ind: Indenters
         g, n = penetration(ind, i, x)
         st.lag_g[s.qp_index * ind.count + i] = g
         st.lag_n[s.qp_index * ind.count + i] = n
+
+
+@fem.integrand
+def stick_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, ind: Indenters, st: ContactState):
+    """Stores the stretch of friction's sticking spring at a converged u for the next step: u_t where it sticks
+    (y < eps), eps t where it slips, 0 out of contact, so that the next step starts with the traction this one ended
+    with."""
+    X = fem.position(domain, s)
+    for i in range(ind.count):
+        j = s.qp_index * ind.count + i
+        kept = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
+        if st.lag_g[j] > _f(0.0) and ind.friction[i] > _f(0.0):
+            ut = tangential_slip(ind, st, i, j, X + u(s), X + u_prev(s))
+            y = wp.length(ut)
+            kept = ut
+            if y > ind.slip_eps:
+                kept = ut * (ind.slip_eps / y)
+        st.stick_next[j] = kept
 
 
 @fem.integrand
@@ -281,9 +307,10 @@ def contact_energy_form(
     for i in range(ind.count):
         g, n = penetration(ind, i, x)
         e += _f(0.5) * ind.stiffness * g * g
-        gl = st.lag_g[s.qp_index * ind.count + i]
+        j = s.qp_index * ind.count + i
+        gl = st.lag_g[j]
         if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-            ut = tangential_slip(ind, i, x, X + u_prev(s), st.lag_n[s.qp_index * ind.count + i])
+            ut = tangential_slip(ind, st, i, j, x, X + u_prev(s))
             e += ind.friction[i] * ind.stiffness * gl * _f0(wp.length(ut), ind.slip_eps)
     return e
 

@@ -37,14 +37,19 @@ class SolverSettings:
     stiffness_factor: float = 100.0
     penetration_tol_mm: float = 0.02  # stated bound on residual interpenetration at convergence
     max_stiffness_raises: int = 3  # per step: contact stiffness raised while the penetration is above the bound
-    # friction smoothing (mm): slips below this are elastic sticking (a sticking point creeps up to this far
-    # per step before friction reaches mu times the normal pressure). 0.05 rather than 0.01: the stick-slip
+    # friction smoothing (mm): slips below this are elastic sticking (a sticking point moves up to this far against the
+    # indenter before friction reaches mu times the normal pressure). 0.05 rather than 0.01: the stick-slip
     # switch is 5x less stiff, which cuts Newton's iterations on frictional frames by a third to a half
     # (scripts/fem_frame_timing.py on tests/fixtures/tiny_press.toml: 12, 15 -> 8, 9), forces within 2 %
     slip_eps_mm: float = 5.0e-2
     # per step: friction's lag (normal pressure and tangent plane) moved to the current u at most this often; scenes
     # set it with [physics] friction_lag_moves, whose description (config/scene.py) gives the measured trade-off
     friction_lag_moves: int = 4
+    # friction's sticking stretch is carried from step to step (contact.py ``stick_form``); False measures each step's
+    # slip afresh (the model before): a sticking point then loses its traction at every step and creeps back up to
+    # slip_eps_mm, so a held contact relaxes and the result depends on how many frames a motion takes
+    # (tests/test_physics_solver.py ``test_sticking_*``)
+    friction_memory: bool = True
     contact_quadrature_order: int | None = None  # None: 2 * degree
     # the device CG's coarse level (coarse_space.py): aggregates of nodes in grid cells of about this size (mm), whose
     # rigid-body modes are solved for directly; None: block-Jacobi alone

@@ -113,7 +113,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             self._contact_state = contact.ContactState()
             for name, dtype in (("lag_g", wp.float64), ("lag_n", wp.vec3d), ("normal", wp.vec3d),
                                 ("k_normal", wp.float64), ("k_slip", wp.float64), ("k_slip_dir", wp.float64),
-                                ("slip_dir", wp.vec3d)):
+                                ("slip_dir", wp.vec3d), ("stick", wp.vec3d), ("stick_next", wp.vec3d)):
                 setattr(self._contact_state, name, wp.zeros(n_contact, dtype=dtype))
             self._contact_state.traction = wp.zeros(self._q_contact.total_point_count(), dtype=wp.vec3d)
 
@@ -257,6 +257,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         self.u.dof_values.zero_()
         self.u_prev.dof_values.zero_()
         self.u_lag.dof_values.zero_()
+        self._contact_state.stick_next.zero_()
         for i in range(len(poses)):
             depth = self._max_penetration(self._indenter_struct([poses[i]], [poses[i]], which=[i]))
             if depth > self.settings.penetration_tol_mm:
@@ -284,6 +285,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         frame = self.frame_index
         self.stats = Counter()
         u_frame_start = wp.clone(self.u.dof_values)
+        stick_frame_start = wp.clone(self._contact_state.stick_next)
         tried = []
         total_iterations, steps = 0, 0
         # the frame's motion in units of 1/2**max_substep_halvings: from `done` in steps of `size` (halved at a failure)
@@ -294,11 +296,13 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             target = [_interpolate_pose(A, B, (done + size) / whole)
                       for A, B in zip(self._poses, poses, strict=False)]
             wp.copy(self.u_prev.dof_values, self.u.dof_values)  # the last converged state: Newton starts there
+            wp.copy(self._contact_state.stick, self._contact_state.stick_next)  # and friction's stretch there
             ok, it, why, pen = self._solve_step(target, prev, may_stall=size > 1)
             total_iterations += it
             if ok and pen > self.settings.penetration_tol_mm:
                 ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
             if ok:
+                self._keep_stick(self._last_ind)
                 done, prev, steps = done + size, target, steps + 1
                 continue
             tried.append(f"the step from {done / whole:g} to {(done + size) / whole:g} of the frame's motion failed "
@@ -309,6 +313,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
             size //= 2
         if not ok:
             wp.copy(self.u.dof_values, u_frame_start)
+            wp.copy(self._contact_state.stick_next, stick_frame_start)
             names = ", ".join(repr(i.name) for i in self.indenters)
             raise SolverDidNotConverge(
                 f"frame {frame} (indenters {names}) did not converge with sub-steps down to 1/{whole} of its motion; "
@@ -348,11 +353,13 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
 
     def snapshot(self):
         """Opaque copy of the solver state (to try a frame and go back, e.g. press-to-force)."""
-        return wp.clone(self.u.dof_values), [P.copy() for P in self._poses], self.frame_index, self._increment
+        return (wp.clone(self.u.dof_values), wp.clone(self._contact_state.stick_next), [P.copy() for P in self._poses],
+                self.frame_index, self._increment)
 
     def restore(self, state) -> None:
-        dofs, poses, frame, increment = state
+        dofs, stick, poses, frame, increment = state
         wp.copy(self.u.dof_values, dofs)
+        wp.copy(self._contact_state.stick_next, stick)
         self._poses, self.frame_index, self._increment = [P.copy() for P in poses], frame, increment
 
     @property
