@@ -26,6 +26,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_matching import stack_of_dataset  # noqa: E402
@@ -109,7 +110,8 @@ def plot(rows: list[dict], path: Path) -> None:
     fig.savefig(path)
 
 
-def main(ds: Path) -> None:
+def main(ds: Path = typer.Argument(REPO / "datasets" / "fusion_distances",
+                                   help="a dataset made by `bash scripts/make_perception_datasets.sh fusion`")) -> None:
     stack, _ = stack_of_dataset(ds, None)
     surface_z = stack["point_mm"][2] + stack["backing_thickness_mm"] + stack["gel_thickness_mm"]
     calib = load_calibration(ds / "calibration.json")
@@ -148,4 +150,4 @@ def main(ds: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else REPO / "datasets" / "fusion_distances")
+    typer.run(main)

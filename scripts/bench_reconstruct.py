@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_matching import stack_of_dataset  # noqa: E402
@@ -64,7 +65,10 @@ def score(out: Path, dataset: Path, seq: str) -> dict:
             "seconds": {k: v / n for k, v in seconds.items()}}
 
 
-def main(datasets: list[Path]) -> None:
+def main(datasets: list[Path] = typer.Argument(None, help="dataset folders (default: datasets/perception_heldout, "
+                                                        "track_roll and track_large, those that exist)")) -> None:
+    datasets = datasets or [REPO / "datasets" / n for n in ("perception_heldout", "track_roll", "track_large")
+                            if (REPO / "datasets" / n).is_dir()]
     rows = []
     for ds in datasets:
         stack, _ = stack_of_dataset(ds, None)
@@ -98,6 +102,4 @@ def main(datasets: list[Path]) -> None:
 
 
 if __name__ == "__main__":
-    args = [Path(a) for a in sys.argv[1:]] or [REPO / "datasets" / n for n in ("perception_heldout", "track_roll", "track_large")
-                                                if (REPO / "datasets" / n).is_dir()]
-    main(args)
+    typer.run(main)

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_matching import stack_of_dataset  # noqa: E402
@@ -106,7 +107,10 @@ def plot(e: dict, path: Path) -> None:
     fig.savefig(path)
 
 
-def main(datasets: list[Path]) -> None:
+def main(datasets: list[Path] = typer.Argument(None, help="dataset folders (default: datasets/perception_heldout, "
+                                                        "track_roll and track_large, those that exist)")) -> None:
+    datasets = datasets or [REPO / "datasets" / n for n in ("perception_heldout", "track_roll", "track_large")
+                            if (REPO / "datasets" / n).is_dir()]
     parts = [errors_of(ds) for ds in datasets]
     e = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     head = "| mm | refraction-aware median | refraction-aware p95 | linear median | linear p95 |\n| --- | --- | --- | --- | --- | --- |\n"
@@ -123,6 +127,4 @@ def main(datasets: list[Path]) -> None:
 
 
 if __name__ == "__main__":
-    args = [Path(a) for a in sys.argv[1:]] or [REPO / "datasets" / n for n in ("perception_heldout", "track_roll", "track_large")
-                                                if (REPO / "datasets" / n).is_dir()]
-    main(args)
+    typer.run(main)

@@ -12,6 +12,8 @@ import platform
 import re
 from pathlib import Path
 
+import typer
+
 
 def machine_name(device: str = "cpu") -> str:
     """``2-core CPU (x86_64)`` or the GPU's name for a CUDA device."""
@@ -48,7 +50,11 @@ def update_section(path: Path, name: str, markdown: str) -> None:
     path.write_text(text)
 
 
-if __name__ == "__main__":  # python scripts/benchmarks_md.py SECTION FILE: a section measured elsewhere (a GPU)
-    import sys
+def _store(section: str = typer.Argument(..., help="the BENCHMARKS.md section's name"),
+           markdown: Path = typer.Argument(..., exists=True, dir_okay=False, help="a file with the section's body")) -> None:
+    """Writes a section measured elsewhere (a GPU) into BENCHMARKS.md."""
+    update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", section, markdown.read_text())
 
-    update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", sys.argv[1], Path(sys.argv[2]).read_text())
+
+if __name__ == "__main__":  # python scripts/benchmarks_md.py SECTION FILE
+    typer.run(_store)

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import tempfile
 import tomllib
 from pathlib import Path
 
 import numpy as np
+import typer
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "tests" / "fixtures" / "tiny_press.toml"
@@ -51,7 +51,11 @@ def one_mesh() -> str:
                 f"{np.linalg.norm(du - interp) / np.linalg.norm(du):.3f} {np.abs(du - interp).max() / np.abs(du).max():.3f}")
 
 
-if __name__ == "__main__":
+def main(meshes: int = typer.Argument(6, min=1, help="how many fresh meshes")) -> None:
     print("vertices pen gap max|u|-depth0 max|du| L2-ratio worst-ratio")
-    for _ in range(int(sys.argv[1]) if len(sys.argv) > 1 else 6):
+    for _ in range(meshes):
         print(one_mesh(), flush=True)
+
+
+if __name__ == "__main__":
+    typer.run(main)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import typer
+
 from transtac_sim.perception.dataset_files import labelled_images
 from transtac_sim.perception.detection.blob import BlobParams, detect_blobs
 from transtac_sim.perception.evaluation.detection import DetectionTally
@@ -16,7 +18,7 @@ from transtac_sim.perception.images import read_color_image
 REPO = Path(__file__).resolve().parents[1]
 TRAINING = ["detector_train_rest", "detector_train_contact"]
 
-if __name__ == "__main__":
+def main() -> None:
     lis = [li for name in TRAINING for li in labelled_images(REPO / "datasets" / name)][::3]
     images = [read_color_image(li.uv_path) for li in lis]
     print("| threshold fraction | min circularity | P@2px | R@2px | F1@2px |\n| --- | --- | --- | --- | --- |")
@@ -27,3 +29,7 @@ if __name__ == "__main__":
                 t.add(detect_blobs(im, BlobParams(threshold_fraction=thr, min_circularity=circ)).uv, li.truth.uv)
             s = t.summary()
             print(f"| {thr} | {circ} | {s['precision@2px']:.4f} | {s['recall@2px']:.4f} | {s['f1@2px']:.4f} |")
+
+
+if __name__ == "__main__":
+    typer.run(main)
