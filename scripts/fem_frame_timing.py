@@ -10,6 +10,8 @@ Newton iterations (Hessian assemblies), line-search halvings, contact stiffness 
 sub-steps, seconds.
 
 ``--friction MU`` replaces every indenter's friction coefficient (0: frictionless), e.g. to see what friction costs.
+``--no-friction-memory`` measures each step's slip afresh (``SolverSettings.friction_memory``, the friction model before
+contact.py carried its sticking stretch from step to step).
 
 ``--sequence I`` solves sequence I of a randomised scene (its drawn indenter, depth, slide, friction and
 layout, as ``generate`` would): e.g. to see why a frame of ``scenes/train_random.toml`` failed.

@@ -58,7 +58,8 @@ def drift(rows: dict, held: int) -> dict:
 
 def report(runs: dict, meta: dict) -> str:
     lines = [f"Machine: {meta['machine']}. Command: `{meta['command']}` ({meta['minutes']:.1f} min). Scene: "
-             f"`{meta['scene']}`, {meta['frames']} frames, the last {meta['held']} held still, {meta['markers']} markers. "
+             f"`{meta['scene']}`, {meta['frames']} frames, the last {meta['held']} held still, {meta['markers']} "
+             "markers. "
              "Hold frame 0 is the frame before the hold; drift is the largest marker move since then.",
              "",
              "| friction's stretch | hold frame | marker drift (mm) | tangential force (N) | normal force (N) "

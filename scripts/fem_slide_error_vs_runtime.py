@@ -29,9 +29,10 @@ Writes BENCHMARKS.md section ``fem_slide_error_vs_runtime`` (``..._gpu`` where t
 docs/figures/<section>.png and the raw rows out/<section>.json. ``--friction MU`` (every indenter's friction
 coefficient), ``--friction-slip-mm MM`` (``[physics] friction_slip_mm``) and ``--suffix S`` append ``_friction_MU``,
 ``_slip_MM`` and ``_S`` to these names, and ``--no-friction-memory`` (each step's slip measured afresh, the friction
-model before contact.py carried its sticking stretch) ``_no_memory``. ``--mesh-only`` meshes every setting (into the mesh cache, e.g. before carrying
-it to another machine) and stops; ``--replot`` makes the section and plot again from out/<section>.json without solving
-(give it the run's own --device, --friction, --friction-slip-mm and --suffix: they name the file).
+model before contact.py carried its sticking stretch) ``_no_memory``. ``--mesh-only`` meshes every setting (into the
+mesh cache, e.g. before carrying it to another machine) and stops; ``--replot`` makes the section and plot again from
+out/<section>.json without solving (give it the run's own --device, --friction, --friction-slip-mm,
+--no-friction-memory and --suffix: they name the file).
 """
 
 from __future__ import annotations
@@ -284,7 +285,8 @@ def report(data: dict, name: str) -> str:
 
 def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frames: int = typer.Option(10, min=2),
          settings: str = typer.Option("1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4",
-                                      help="EDGE/LAGS or EDGE/LAGS/SPLIT, comma-separated: contact edge (mm) / lag moves / load steps a frame"),
+                                      help="EDGE/LAGS or EDGE/LAGS/SPLIT, comma-separated: contact edge (mm) / lag "
+                                      "moves / load steps a frame"),
          reference: str = typer.Option("0.3/4", help="EDGE/LAGS or EDGE/LAGS/SPLIT of the reference solution"),
          device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
@@ -294,7 +296,8 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
          suffix: str = typer.Option("", help="appended to the section, plot and JSON names (e.g. load_steps)"),
          mesh_only: bool = typer.Option(False, help="mesh every setting (fills the mesh cache) and stop"),
          replot: bool = typer.Option(False, help="no solving: the section and plot again from out/<section>.json "
-                                                 "(give the run's --device, --friction, --friction-slip-mm, --suffix)"),
+                                                 "(give the run's --device, --friction, --friction-slip-mm, "
+                                                 "--no-friction-memory, --suffix)"),
          no_write: bool = typer.Option(False, help="print only: no BENCHMARKS.md, JSON or PNG"),
          friction_memory: bool = solver_variants.FRICTION_MEMORY_OPTION) -> None:
     solver_variants.solver_settings(friction_memory=friction_memory)
@@ -318,7 +321,7 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
     out = ROOT / "out" / f"{name}.json"
     if replot and not out.is_file():
         raise typer.BadParameter(f"--replot reads {out}, which does not exist (same --device, --friction, "
-                                 "--friction-slip-mm and --suffix as the run?)")
+                                 "--friction-slip-mm, --no-friction-memory and --suffix as the run?)")
     data = json.loads(out.read_text()) if replot else measure(scene, base, frames, chosen, ref_setting, device, gpu,
                                                                friction, friction_slip_mm)
     body = report(data, name)

@@ -8,7 +8,7 @@ import functools
 
 import typer
 
-from transtac_sim.physics import device_linear, newton
+from transtac_sim.physics import device_linear, newton, settings
 from transtac_sim.physics.newton import NewtonSteps
 
 WARM_STARTS = ("all", "extrapolated", "none")
@@ -37,10 +37,10 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
 
 def solver_settings(**fields) -> None:
     """Every ``SolverSettings`` that simulation.py makes from now on takes ``fields`` (it imports the class from
-    ``transtac_sim.physics`` when it solves)."""
+    ``transtac_sim.physics`` when it solves), in place of those of an earlier call."""
     from transtac_sim import physics
 
-    physics.SolverSettings = functools.partial(physics.SolverSettings, **fields)
+    physics.SolverSettings = functools.partial(settings.SolverSettings, **fields)
 
 
 def friction_memory() -> bool:

@@ -1,10 +1,10 @@
-"""The contact's inside test and penetration depth (physics/contact.py ``penetration``) against an exact reference, on
-every indenter of the library: points near their vertices and edges (where a sign taken from the wrong face would be
-wrong), points at contact depths (1e-4 to 0.05 mm) on either side of their faces, and points spread over their bounding
-boxes. (Warp's pseudo-normal sign, tried in commit f71967c, passes these points; a denser sampling in review, a
-throwaway script not kept, found it wrong at a few points deep inside the coin and the pocket block. The inside test
-at an edge or a vertex is now the closest feature's own angle-weighted pseudo-normal, the winding number only where
-the features that the closest point's weights allow disagree: 0 points wrong with ``python
+"""The contact's inside test and penetration depth (physics/indenter_query.py ``penetration``) against an exact
+reference, on every indenter of the library: points near their vertices and edges (where a sign taken from the wrong
+face would be wrong), points at contact depths (1e-4 to 0.05 mm) on either side of their faces, and points spread
+over their bounding boxes. (Warp's pseudo-normal sign, tried in commit f71967c, passes these points; a denser
+sampling in review, a throwaway script not kept, found it wrong at a few points deep inside the coin and the pocket
+block. The inside test at an edge or a vertex is now the closest feature's own angle-weighted pseudo-normal, the
+winding number only where the features that the closest point's weights allow disagree: 0 points wrong with ``python
 tests/test_physics_contact_query.py 0 15`` and ``16 47`` on the 2-core CPU.)
 
 Reference (numpy, exact for a closed mesh): inside where the generalised winding number (the sum of the triangles'
@@ -23,7 +23,7 @@ import pytest
 import trimesh
 import warp as wp
 
-from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, contact
+from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, indenter_query
 from transtac_sim.physics.box_mesh import box_tet_mesh
 
 INDENTERS = Path(__file__).resolve().parents[1] / "scenes" / "indenters"
@@ -32,9 +32,9 @@ DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
 
 @wp.kernel
-def _penetrations(ind: contact.Indenters, points: wp.array(dtype=wp.vec3d), depth: wp.array(dtype=wp.float64)):
+def _penetrations(ind: indenter_query.Indenters, points: wp.array(dtype=wp.vec3d), depth: wp.array(dtype=wp.float64)):
     i = wp.tid()
-    g, n = contact.penetration(ind, 0, points[i])
+    g, n = indenter_query.penetration(ind, 0, points[i])
     depth[i] = g
 
 
@@ -92,7 +92,8 @@ def _query_points(mesh: trimesh.Trimesh, rng: np.random.Generator) -> np.ndarray
 
 
 def _compare(name: str, seed: int, device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """For the library indenter ``name`` and the query points of ``seed``: (contact.py's depth on ``device``, exact
+    """For the library indenter ``name`` and the query points of ``seed``: (indenter_query.py's depth on ``device``,
+    exact
     inside, exact distance, points off the surface), in mm."""
     mesh = trimesh.load(INDENTERS / f"{name}.stl")
     indenter = RigidIndenter.from_trimesh(name, mesh)
@@ -116,6 +117,41 @@ def test_penetration_matches_the_exact_inside_test_and_distance(name: str, devic
     assert clear.sum() > 1000 and inside[clear].sum() > 200 and (~inside[clear]).sum() > 200
     assert np.all(g[clear & ~inside] == 0.0)
     np.testing.assert_allclose(g[clear & inside], distance[clear & inside], rtol=0, atol=1e-2)
+
+
+@wp.kernel
+def _penetrations_and_normals(ind: indenter_query.Indenters, points: wp.array(dtype=wp.vec3d),
+                              depth: wp.array(dtype=wp.float64), normal: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    g, n = indenter_query.penetration(ind, 0, points[i])
+    depth[i] = g
+    normal[i] = n
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_penetration_at_an_edge_inside_a_flat_face_is_exact(device: str):
+    """A 40 x 40 mm plate's bottom face is two triangles that meet along its diagonal x + y = 0. Under it, points within
+    1e-5 mm of the diagonal have their closest point on that edge, where the depth and normal were taken from Warp's
+    float32 closest point: up to 1.9e-7 mm and 0.056 off (these points, depths 1e-4 to 1e-2 mm), enough noise in the
+    contact energy that Newton stalled on a plate pressed onto a block
+    (``test_plate_wider_than_the_gel_presses_it_in_few_newton_iterations``). An edge or corner inside a flat region now
+    takes the face's plane (``_in_flat_region``): exact to round-off. (The float64 closest point of the face alone,
+    ``_closest_on_triangle``, left 4.6e-8 mm and 0.02: the float32 query may return the neighbouring triangle.)"""
+    plate = RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)))
+    V, T = box_tet_mesh(np.linspace(0, 1, 2), np.linspace(0, 1, 2), np.linspace(0, 1, 2))
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [plate], device=device)
+    ind = solver._indenter_struct([np.eye(4)], [np.eye(4)])
+    rng = np.random.default_rng(0)
+    along = rng.uniform(-3.0, 3.0, 200)
+    across = rng.uniform(-1e-5, 1e-5, 200)  # within 1e-5 mm of the diagonal: on the edge for the query's tolerance
+    depths = 10.0 ** rng.uniform(-4.0, -2.0, 200)
+    points = np.stack([along + across, -along + across, -1.0 + depths], axis=1)
+    depth = wp.zeros(len(points), dtype=wp.float64, device=device)
+    normal = wp.zeros(len(points), dtype=wp.vec3d, device=device)
+    wp.launch(_penetrations_and_normals, dim=len(points), device=device,
+              inputs=[ind, wp.array(points, dtype=wp.vec3d, device=device), depth, normal])
+    np.testing.assert_allclose(depth.numpy(), depths, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(normal.numpy(), np.tile([0.0, 0.0, -1.0], (len(points), 1)), atol=1e-9)
 
 
 def test_feature_normals_of_a_cube_point_along_its_corners_and_edges():

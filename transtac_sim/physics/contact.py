@@ -3,13 +3,10 @@
 Rigid indenter i: a watertight mesh in its local frame and a pose T_i (4x4, local -> gel frame, mm).
 At a boundary point of the gel with current position x = X + u(X):
 
-- Normal contact. Let q = T_i^-1 x. If q is inside the mesh (the side of the closest face's plane, or at an edge or a
-  vertex the winding number; ``penetration``), the penetration is
-  g = |c - q| with c the closest surface point, and n = T_i (c - q)/g (the direction that takes x out of
-  the indenter). Inside a face, g and n are the (float64) distance to the face plane and its normal,
-  which stays accurate for tiny penetrations where the float32 closest point would not. Energy k/2 g^2 per unit area, so the gel feels the traction
-  k g n (MPa). ``k`` (N/mm^3) is the penalty stiffness; at equilibrium the penetration is p/k for a contact
-  pressure p, which the solver checks against a stated tolerance.
+- Normal contact. The penetration g and push-out normal n of x against indenter i (indenter_query.py
+  ``penetration``). Energy k/2 g^2 per unit area, so the gel feels the traction k g n (MPa). ``k`` (N/mm^3) is the
+  penalty stiffness; at equilibrium the penetration is p/k for a contact pressure p, which the solver checks against a
+  stated tolerance.
 - Friction (Coulomb, coefficient mu_f), on the slip since the previous (sub)step plus the sticking stretch s carried
   from it, with the normal pressure lam = k g and the normal n lagged at displacement u_lag (IPC-style):
       dx  = x - T_i T_i,prev^-1 (x_prev - s)   (motion of the gel point relative to the indenter)
@@ -22,7 +19,9 @@ At a boundary point of the gel with current position x = X + u(X):
   At a converged step s becomes u_t, shortened to eps where it slipped (y > eps; f1(eps) = 1) and 0 out of contact
   (``stick_form``): the next step starts with the traction this one ended with. Without s (IPC's incremental form,
   made for small time steps) every quasi-static frame started from no friction, so a sticking point crept up to
-  eps per frame and a held contact relaxed (``SolverSettings.friction_memory``).
+  eps per frame and a held contact relaxed (``SolverSettings.friction_memory``). The stretch is the smoothing's
+  elastic stick, not an exact Coulomb law: a point kept at eps that reverses its slip starts with no stiffness along
+  the slip (f1'(eps) = 0) and sheds its traction as the stretch shrinks.
 
 All quantities are integrated over the boundary faces of the gel with a Gauss rule. The lagged quantities and
 the current traction and stiffnesses are stored per quadrature point (``ContactState``) before assembly.
@@ -33,151 +32,9 @@ from __future__ import annotations
 import warp as wp
 import warp.fem as fem
 
+from transtac_sim.physics.indenter_query import Indenters, penetration, transform
+
 _f = wp.float64
-
-
-@wp.struct
-class Indenters:
-    mesh: wp.array(dtype=wp.uint64)
-    pose: wp.array(dtype=wp.mat44d)  # local -> gel, current
-    pose_inv: wp.array(dtype=wp.mat44d)  # gel -> local, current
-    relative: wp.array(dtype=wp.mat44d)  # T_cur T_prev^-1: where a point stuck to the indenter moved
-    max_dist: wp.array(dtype=wp.float64)  # bounding radius of each mesh (mm)
-    box_lo: wp.array(dtype=wp.vec3d)  # each mesh's bounding box in its local frame (mm): no query outside it
-    box_hi: wp.array(dtype=wp.vec3d)
-    normals: wp.array(dtype=wp.vec3d)  # every mesh's ``RigidIndenter.feature_normals``, 7 per face, one after another
-    normals_start: wp.array(dtype=int)  # where each mesh's normals start in ``normals``
-    friction: wp.array(dtype=wp.float64)
-    count: int
-    stiffness: wp.float64  # penalty k (N/mm^3)
-    slip_eps: wp.float64  # friction smoothing (mm)
-
-
-@wp.func
-def _transform(T: wp.mat44d, x: wp.vec3d):
-    return wp.vec3d(
-        T[0, 0] * x[0] + T[0, 1] * x[1] + T[0, 2] * x[2] + T[0, 3],
-        T[1, 0] * x[0] + T[1, 1] * x[1] + T[1, 2] * x[2] + T[1, 3],
-        T[2, 0] * x[0] + T[2, 1] * x[1] + T[2, 2] * x[2] + T[2, 3],
-    )
-
-
-@wp.func
-def _rotate(T: wp.mat44d, x: wp.vec3d):
-    return wp.vec3d(
-        T[0, 0] * x[0] + T[0, 1] * x[1] + T[0, 2] * x[2],
-        T[1, 0] * x[0] + T[1, 1] * x[1] + T[1, 2] * x[2],
-        T[2, 0] * x[0] + T[2, 1] * x[1] + T[2, 2] * x[2],
-    )
-
-
-@wp.func
-def _point(mesh: wp.uint64, face: int, k: int):
-    m = wp.mesh_get(mesh)
-    p = m.points[m.indices[3 * face + k]]
-    return wp.vec3d(_f(p[0]), _f(p[1]), _f(p[2]))
-
-
-@wp.func
-def _face_plane(mesh: wp.uint64, face: int):
-    """(a vertex, the unit outward normal) of a mesh face, in float64."""
-    p0 = _point(mesh, face, 0)
-    return p0, wp.normalize(wp.cross(_point(mesh, face, 1) - p0, _point(mesh, face, 2) - p0))
-
-
-@wp.func
-def _inside_face(hit: wp.MeshQueryPoint, tol: wp.float32):
-    """Whether the closest point of ``hit`` lies inside its face, away from the face's edges by ``tol`` (barycentric)."""
-    return hit.u > tol and hit.v > tol and wp.float32(1.0) - hit.u - hit.v > tol
-
-
-@wp.func
-def _feature_side(ind: Indenters, i: int, hit: wp.MeshQueryPoint, q: wp.vec3d, tol: wp.float32):
-    """Which side of indenter i's mesh q (local frame) lies on, from its closest point c on face ``hit.face`` near
-    the face's boundary (a barycentric weight <= ``tol``): +1 outside, -1 inside, 0 undecided. c lies on the face, on
-    an edge (its opposite weight about 0) or at a vertex (the other two about 0), and each of these features consistent
-    with the weights gives a side, (q - c) . (its pseudo-normal) (``RigidIndenter.feature_normals``), exact for the
-    feature that holds c (Baerentzen & Aanaes 2005); decided where all of them agree, else 0."""
-    w = wp.vec3(hit.u, hit.v, wp.float32(1.0) - hit.u - hit.v)
-    c = _f(w[0]) * _point(ind.mesh[i], hit.face, 0) + _f(w[1]) * _point(ind.mesh[i], hit.face, 1) \
-        + _f(w[2]) * _point(ind.mesh[i], hit.face, 2)
-    d = q - c
-    base = ind.normals_start[i] + 7 * hit.face
-    lowest = wp.dot(d, ind.normals[base])  # the face
-    highest = lowest
-    for k in range(3):
-        if w[k] <= tol:  # the edge opposite corner k
-            s = wp.dot(d, ind.normals[base + 4 + k])
-            lowest = wp.min(lowest, s)
-            highest = wp.max(highest, s)
-        if w[(k + 1) % 3] <= tol and w[(k + 2) % 3] <= tol:  # corner k
-            s = wp.dot(d, ind.normals[base + 1 + k])
-            lowest = wp.min(lowest, s)
-            highest = wp.max(highest, s)
-    side = 0
-    if lowest > _f(0.0):
-        side = 1
-    elif highest < _f(0.0):
-        side = -1
-    return side
-
-
-@wp.func
-def penetration(ind: Indenters, i: int, x: wp.vec3d):
-    """(g, n): penetration depth (mm, 0 if outside) and push-out direction in the gel frame.
-
-    Inside a face (the usual case) g is the distance to the face plane along its outward normal,
-    computed in float64; near an edge or a vertex of the indenter n points to the closest point. A point outside
-    the mesh's bounding box is outside the mesh: (0, +z) without a mesh query. Inside or outside: where the closest
-    point lies inside a face, the side of that face's plane (exact for a closed mesh); at an edge or a vertex, the side
-    of that feature's angle-weighted pseudo-normal (``_feature_side``, exact for a closed mesh), checked against
-    every feature that the closest point's float32 barycentric weights cannot rule out, and where those disagree the
-    winding number (which looks at the whole mesh, so it is the expensive query: the contact kernels took 545 against
-    185 us on press_slide on an H100 with the winding number at every edge and vertex and none, BENCHMARKS.md
-    ``fem_contact_query_gpu``). Warp's pseudo-normal sign (``mesh_query_point_sign_normal``) was tried and, in a
-    review's denser sampling, put a few points deep inside the coin and the pocket block outside: it adds the normals
-    of every face within a tolerance of the closest distance instead of taking the closest feature's."""
-    q = _transform(ind.pose_inv[i], x)
-    g = _f(0.0)
-    n = wp.vec3d(_f(0.0), _f(0.0), _f(1.0))
-    lo = ind.box_lo[i]
-    hi = ind.box_hi[i]
-    if q[0] < lo[0] or q[1] < lo[1] or q[2] < lo[2] or q[0] > hi[0] or q[1] > hi[1] or q[2] > hi[2]:
-        return g, n
-    qf = wp.vec3(wp.float32(q[0]), wp.float32(q[1]), wp.float32(q[2]))
-    edge_tol = wp.float32(1.0e-4)
-    hit = wp.mesh_query_point_no_sign(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
-    if not hit.result:
-        return g, n
-    p0, nf = _face_plane(ind.mesh[i], hit.face)
-    if _inside_face(hit, edge_tol):
-        g = wp.dot(p0 - q, nf)
-        if g > _f(0.0):
-            n = _rotate(ind.pose[i], nf)
-        else:
-            g = _f(0.0)
-        return g, n
-    side = _feature_side(ind, i, hit, q, edge_tol)
-    if side > 0:
-        return g, n
-    if side == 0:  # undecided: the winding number, with its own closest point
-        hit = wp.mesh_query_point_sign_winding_number(ind.mesh[i], qf, wp.float32(ind.max_dist[i]))
-        if not (hit.result and hit.sign < 0.0):
-            return g, n
-        p0, nf = _face_plane(ind.mesh[i], hit.face)
-    if _inside_face(hit, edge_tol):
-        g = wp.dot(p0 - q, nf)
-        n = _rotate(ind.pose[i], nf)
-    else:
-        cf = wp.mesh_eval_position(ind.mesh[i], hit.face, hit.u, hit.v)
-        d = wp.vec3d(_f(cf[0]), _f(cf[1]), _f(cf[2])) - q
-        g = wp.length(d)
-        if g > _f(1.0e-9):
-            n = _rotate(ind.pose[i], d / g)
-        else:
-            n = _rotate(ind.pose[i], nf)
-    g = wp.max(g, _f(0.0))
-    return g, n
 
 
 @wp.func
@@ -219,10 +76,9 @@ class ContactState:
 
 
 @wp.func
-def tangential_slip(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_prev: wp.vec3d):
-    """u_t: the slip since the anchor x_prev - stick (carried along with indenter i), in the lagged tangent plane."""
-    dx = x - _transform(ind.relative[i], x_prev - st.stick[j])
-    n = st.lag_n[j]
+def tangential_slip(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_prev: wp.vec3d, n: wp.vec3d):
+    """u_t: the slip since the anchor x_prev - stick (carried along with indenter i), in the plane normal to n."""
+    dx = x - transform(ind.relative[i], x_prev - st.stick[j])
     return dx - wp.dot(dx, n) * n
 
 
@@ -241,7 +97,7 @@ def traction(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_pr
     t_dir = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
     gl = st.lag_g[j]
     if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-        ut = tangential_slip(ind, st, i, j, x, x_prev)
+        ut = tangential_slip(ind, st, i, j, x, x_prev, st.lag_n[j])
         y = wp.length(ut)
         c = ind.friction[i] * ind.stiffness * gl
         k_t = c * _f1_over_y(y, ind.slip_eps)
@@ -264,15 +120,17 @@ def lag_form(s: fem.Sample, domain: fem.Domain, u_lag: fem.Field, ind: Indenters
 
 @fem.integrand
 def stick_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, ind: Indenters, st: ContactState):
-    """Stores the stretch of friction's sticking spring at a converged u for the next step: u_t where it sticks
-    (y < eps), eps t where it slips, 0 out of contact, so that the next step starts with the traction this one ended
-    with."""
+    """Stores the stretch of friction's sticking spring at a converged u for the next step: u_t in the tangent plane at
+    u where it sticks (y < eps), eps t where it slips, 0 where u is out of contact, so that the next step starts with
+    the traction this one ended with. Contact and tangent plane are taken at u, not at the last lag (which can trail
+    u by what the last lag move left), as the next step's first lag will be."""
     X = fem.position(domain, s)
     for i in range(ind.count):
         j = s.qp_index * ind.count + i
         kept = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
-        if st.lag_g[j] > _f(0.0) and ind.friction[i] > _f(0.0):
-            ut = tangential_slip(ind, st, i, j, X + u(s), X + u_prev(s))
+        g, n = penetration(ind, i, X + u(s))
+        if g > _f(0.0) and ind.friction[i] > _f(0.0):
+            ut = tangential_slip(ind, st, i, j, X + u(s), X + u_prev(s), n)
             y = wp.length(ut)
             kept = ut
             if y > ind.slip_eps:
@@ -310,7 +168,7 @@ def contact_energy_form(
         j = s.qp_index * ind.count + i
         gl = st.lag_g[j]
         if gl > _f(0.0) and ind.friction[i] > _f(0.0):
-            ut = tangential_slip(ind, st, i, j, x, X + u_prev(s))
+            ut = tangential_slip(ind, st, i, j, x, X + u_prev(s), st.lag_n[j])
             e += ind.friction[i] * ind.stiffness * gl * _f0(wp.length(ut), ind.slip_eps)
     return e
 

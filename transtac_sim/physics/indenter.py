@@ -48,7 +48,7 @@ class RigidIndenter:
         (Baerentzen & Aanaes 2005) of its vertices 0-2 (the incident faces' normals weighted by their angles there) and
         of its edges opposite vertices 0-2 (the sum of the two faces' normals), normalised; 0 where that sum is 0
         (a knife edge or a degenerate vertex). For a closed mesh, a point p whose closest mesh point c lies inside a
-        feature is outside exactly where (p - c) . (the feature's pseudo-normal) > 0 (contact.py ``penetration``)."""
+        feature is outside exactly where (p - c) . (the feature's pseudo-normal) > 0 (indenter_query.py ``penetration``)."""
         P = self.vertices_mm[self.faces]  # (faces, 3 corners, 3)
         cross = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
         face_normal = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)

@@ -26,7 +26,7 @@ import warp.fem as fem
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation, Slerp
 
-from transtac_sim.physics import contact
+from transtac_sim.physics import contact, indenter_query
 from transtac_sim.physics.assembly import Assembly
 from transtac_sim.physics.contact_sides import ContactSides
 from transtac_sim.physics.indenter import RigidIndenter
@@ -226,11 +226,11 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
                 wp.array(np.cumsum([0] + [7 * len(n) for n in normals[:-1]]), dtype=int, device=self.device))
         return self._normals[which]
 
-    def _indenter_struct(self, poses, prev_poses, which: list[int] | None = None) -> contact.Indenters:
+    def _indenter_struct(self, poses, prev_poses, which: list[int] | None = None) -> indenter_query.Indenters:
         """The indenters ``which`` (default all) at ``poses``, having moved from ``prev_poses`` (one each)."""
         which = list(range(len(self.indenters))) if which is None else which
         chosen = [self.indenters[i] for i in which]
-        s = contact.Indenters()
+        s = indenter_query.Indenters()
         dev = self.device
         s.mesh = wp.array([self._meshes[i].id for i in which], dtype=wp.uint64, device=dev)
         s.pose = wp.array(np.stack(poses), dtype=wp.mat44d, device=dev)
