@@ -93,8 +93,7 @@ def _query_points(mesh: trimesh.Trimesh, rng: np.random.Generator) -> np.ndarray
 
 def _compare(name: str, seed: int, device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For the library indenter ``name`` and the query points of ``seed``: (indenter_query.py's depth on ``device``,
-    exact
-    inside, exact distance, points off the surface), in mm."""
+    exact inside, exact distance, points off the surface), in mm."""
     mesh = trimesh.load(INDENTERS / f"{name}.stl")
     indenter = RigidIndenter.from_trimesh(name, mesh)
     V, T = box_tet_mesh(np.linspace(0, 1, 2), np.linspace(0, 1, 2), np.linspace(0, 1, 2))
@@ -132,11 +131,10 @@ def _penetrations_and_normals(ind: indenter_query.Indenters, points: wp.array(dt
 def test_penetration_at_an_edge_inside_a_flat_face_is_exact(device: str):
     """A 40 x 40 mm plate's bottom face is two triangles that meet along its diagonal x + y = 0. Under it, points within
     1e-5 mm of the diagonal have their closest point on that edge, where the depth and normal were taken from Warp's
-    float32 closest point: up to 1.9e-7 mm and 0.056 off (these points, depths 1e-4 to 1e-2 mm), enough noise in the
-    contact energy that Newton stalled on a plate pressed onto a block
-    (``test_plate_wider_than_the_gel_presses_it_in_few_newton_iterations``). An edge or corner inside a flat region now
-    takes the face's plane (``_in_flat_region``): exact to round-off. (The float64 closest point of the face alone,
-    ``_closest_on_triangle``, left 4.6e-8 mm and 0.02: the float32 query may return the neighbouring triangle.)"""
+    float32 closest point: up to 8.6e-8 mm and 0.033 off on these points (depths 1e-4 to 1e-2 mm; commit 0623410),
+    enough noise in the contact energy that Newton stalled on a plate pressed onto a block
+    (``test_plate_wider_than_the_gel_presses_it_in_few_newton_iterations``). An edge between coplanar faces now takes
+    the face's plane (``_on_flat_edge``): exact to round-off."""
     plate = RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)))
     V, T = box_tet_mesh(np.linspace(0, 1, 2), np.linspace(0, 1, 2), np.linspace(0, 1, 2))
     solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [plate], device=device)
@@ -152,6 +150,53 @@ def test_penetration_at_an_edge_inside_a_flat_face_is_exact(device: str):
               inputs=[ind, wp.array(points, dtype=wp.vec3d, device=device), depth, normal])
     np.testing.assert_allclose(depth.numpy(), depths, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(normal.numpy(), np.tile([0.0, 0.0, -1.0], (len(points), 1)), atol=1e-9)
+
+
+@wp.kernel
+def _closest_points(p: wp.array(dtype=wp.vec3d), tri: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    out[i] = indenter_query._closest_on_triangle(p[i], tri[3 * i], tri[3 * i + 1], tri[3 * i + 2])
+
+
+def _closest_by_candidates(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """The closest point of each triangle another way than Ericson's regions: the nearest of the projection onto the
+    plane (where it falls inside), the projections onto the three edges (clamped to them) and the three corners."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    candidates = [a, b, c]
+    for s, e in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.einsum("ij,ij->i", p - s, e - s) / np.einsum("ij,ij->i", e - s, e - s), 0.0, 1.0)
+        candidates.append(s + (e - s) * t[:, None])
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    projected = p - np.einsum("ij,ij->i", p - a, n)[:, None] * n
+    inside = np.ones(len(p), dtype=bool)
+    for s, e in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ij,ij->i", np.cross(e - s, projected - s), n) >= 0.0
+    candidates.append(np.where(inside[:, None], projected, a))
+    stacked = np.stack(candidates, axis=1)
+    best = np.argmin(np.linalg.norm(stacked - p[:, None], axis=2), axis=1)
+    return stacked[np.arange(len(p)), best]
+
+
+def test_closest_point_on_a_triangle_in_every_region_and_on_a_degenerate_one():
+    """``_closest_on_triangle`` (Ericson's seven regions) against the nearest of the candidate points, for points all
+    around random triangles (every region is hit); a triangle with two equal corners or all three gives a finite point
+    of it (a closed indenter mesh may keep such a face: RigidIndenter does not drop them)."""
+    rng = np.random.default_rng(1)
+    tri = rng.uniform(-1.0, 1.0, (4000, 3, 3))
+    p = rng.uniform(-2.0, 2.0, (4000, 3))
+    out = wp.zeros(len(p), dtype=wp.vec3d)
+    wp.launch(_closest_points, dim=len(p),
+              inputs=[wp.array(p, dtype=wp.vec3d), wp.array(tri.reshape(-1, 3), dtype=wp.vec3d), out])
+    np.testing.assert_allclose(out.numpy(), _closest_by_candidates(p, tri), rtol=0, atol=1e-9)
+    degenerate = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [[0.5, 0.5, 0.5]] * 3])
+    q = np.array([[0.3, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    out = wp.zeros(2, dtype=wp.vec3d)
+    wp.launch(_closest_points, dim=2,
+              inputs=[wp.array(q, dtype=wp.vec3d), wp.array(degenerate.reshape(-1, 3), dtype=wp.vec3d), out])
+    got = out.numpy()  # a point of each degenerate triangle (not always its closest: Ericson's regions assume area)
+    assert np.isfinite(got).all() and 0.0 <= got[0, 0] <= 1.0 and np.allclose(got[0, 1:], 0.0)
+    np.testing.assert_allclose(got[1], [0.5, 0.5, 0.5], atol=1e-12)
 
 
 def test_feature_normals_of_a_cube_point_along_its_corners_and_edges():

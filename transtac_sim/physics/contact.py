@@ -121,15 +121,16 @@ def lag_form(s: fem.Sample, domain: fem.Domain, u_lag: fem.Field, ind: Indenters
 @fem.integrand
 def stick_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, u_prev: fem.Field, ind: Indenters, st: ContactState):
     """Stores the stretch of friction's sticking spring at a converged u for the next step: u_t in the tangent plane at
-    u where it sticks (y < eps), eps t where it slips, 0 where u is out of contact, so that the next step starts with
-    the traction this one ended with. Contact and tangent plane are taken at u, not at the last lag (which can trail
-    u by what the last lag move left), as the next step's first lag will be."""
+    u where it sticks (y < eps), eps t where it slips, 0 where friction did not act this step (no contact at the last
+    lag) or u is out of contact, so that the next step starts with the traction this one ended with. The tangent plane
+    is taken at u rather than at the last lag (which can trail u by what the last lag move left), as the next step's
+    first lag is unless a warm start moves it."""
     X = fem.position(domain, s)
     for i in range(ind.count):
         j = s.qp_index * ind.count + i
         kept = wp.vec3d(_f(0.0), _f(0.0), _f(0.0))
         g, n = penetration(ind, i, X + u(s))
-        if g > _f(0.0) and ind.friction[i] > _f(0.0):
+        if g > _f(0.0) and st.lag_g[j] > _f(0.0) and ind.friction[i] > _f(0.0):
             ut = tangential_slip(ind, st, i, j, X + u(s), X + u_prev(s), n)
             y = wp.length(ut)
             kept = ut

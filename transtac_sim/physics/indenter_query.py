@@ -3,11 +3,12 @@
 
 Rigid indenter i: a watertight mesh in its local frame and a pose T_i (4x4, local -> gel frame, mm). For a point x
 (gel frame, mm) let q = T_i^-1 x. If q is inside the mesh, the penetration is g = |c - q| with c the closest surface
-point, and n = T_i (c - q)/g, the direction that takes x out of the indenter. Inside a face, and at an edge or corner
-inside a flat region of the mesh (a plane cut into triangles), g and n are the (float64) distance to the face plane and
-its normal; at any other edge or corner, from the float64 closest point of the face. Both stay accurate for tiny
-penetrations where Warp's float32 closest point would not: on a plate's bottom face cut along its diagonal, 1.9e-7 mm
-and 0.056 off at depths of 1e-4 to 1e-2 mm, enough noise in the contact energy to stall Newton
+point, and n = T_i (c - q)/g, the direction that takes x out of the indenter. Inside a face, and on an edge between
+two coplanar faces (a plane cut into triangles), g and n are the (float64) distance to the face plane and its normal:
+exact. At any other edge or corner they come from the float64 closest point of the face that Warp's float32 query
+returns (where two faces are about equally close, the query may return the one a float32 rounding favours). Warp's
+float32 closest point, used at every edge and corner before, was up to 8.6e-8 mm and 0.033 off under a plate's bottom
+face cut along its diagonal at depths of 1e-4 to 1e-2 mm, enough noise in the contact energy to stall Newton
 (tests/test_physics_contact_query.py).
 """
 
@@ -72,8 +73,18 @@ def _face_plane(mesh: wp.uint64, face: int):
 
 
 @wp.func
+def _ratio(num: wp.float64, den: wp.float64):
+    """num / den, 0 where den <= 0 (an edge of zero length in a degenerate triangle)."""
+    r = _f(0.0)
+    if den > _f(0.0):
+        r = num / den
+    return r
+
+
+@wp.func
 def _closest_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
-    """The point of triangle abc closest to p, in float64 (Ericson, Real-Time Collision Detection, 5.1.5)."""
+    """The point of triangle abc closest to p, in float64 (Ericson, Real-Time Collision Detection, 5.1.5; a degenerate
+    triangle gives a point of it, not NaN)."""
     ab = b - a
     ac = c - a
     ap = p - a
@@ -88,7 +99,7 @@ def _closest_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
         return b
     vc = d1 * d4 - d3 * d2
     if vc <= _f(0.0) and d1 >= _f(0.0) and d3 <= _f(0.0):
-        return a + ab * (d1 / (d1 - d3))
+        return a + ab * _ratio(d1, d1 - d3)
     cp = p - c
     d5 = wp.dot(ab, cp)
     d6 = wp.dot(ac, cp)
@@ -96,12 +107,12 @@ def _closest_on_triangle(p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d):
         return c
     vb = d5 * d2 - d1 * d6
     if vb <= _f(0.0) and d2 >= _f(0.0) and d6 <= _f(0.0):
-        return a + ac * (d2 / (d2 - d6))
+        return a + ac * _ratio(d2, d2 - d6)
     va = d3 * d6 - d5 * d4
     if va <= _f(0.0) and d4 - d3 >= _f(0.0) and d5 - d6 >= _f(0.0):
-        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
-    denom = _f(1.0) / (va + vb + vc)
-    return a + ab * (vb * denom) + ac * (vc * denom)
+        return b + (c - b) * _ratio(d4 - d3, (d4 - d3) + (d5 - d6))
+    total = va + vb + vc
+    return a + ab * _ratio(vb, total) + ac * _ratio(vc, total)
 
 
 @wp.func
@@ -142,26 +153,28 @@ def _feature_side(ind: Indenters, i: int, hit: wp.MeshQueryPoint, q: wp.vec3d, t
 
 
 @wp.func
-def _in_flat_region(ind: Indenters, i: int, hit: wp.MeshQueryPoint, nf: wp.vec3d, tol: wp.float32):
-    """Whether every edge and corner of face ``hit.face`` that its closest point may lie on (a barycentric weight <=
-    ``tol``, as in ``_feature_side``) has the face's own normal as its pseudo-normal: a feature inside a flat region
-    of the mesh (a plane cut into triangles), where the face's plane gives the depth exactly."""
+def _on_flat_edge(ind: Indenters, i: int, hit: wp.MeshQueryPoint, nf: wp.vec3d, tol: wp.float32):
+    """Whether the closest point of ``hit`` lies on one edge of its face (one barycentric weight <= ``tol``, as in
+    ``_feature_side``; not near a corner) whose pseudo-normal is the face's own normal: the edge between two coplanar
+    faces of a flat region (a plane cut into triangles; every edge of a closed mesh has two faces), where the face's
+    plane gives the depth exactly. Near a corner the answer is no: a corner's pseudo-normal can equal the face's
+    normal where its other faces tilt symmetrically, so the float64 closest point is taken there."""
     w = wp.vec3(hit.u, hit.v, wp.float32(1.0) - hit.u - hit.v)
     base = ind.normals_start[i] + 7 * hit.face
-    flat = True
+    small = 0
+    edge = 0
     for k in range(3):
-        if w[k] <= tol and wp.dot(ind.normals[base + 4 + k], nf) < _f(1.0 - 1.0e-9):
-            flat = False
-        if w[(k + 1) % 3] <= tol and w[(k + 2) % 3] <= tol and wp.dot(ind.normals[base + 1 + k], nf) < _f(1.0 - 1.0e-9):
-            flat = False
-    return flat
+        if w[k] <= tol:
+            small += 1
+            edge = k
+    return small == 1 and wp.dot(ind.normals[base + 4 + edge], nf) >= _f(1.0 - 1.0e-9)
 
 
 @wp.func
 def penetration(ind: Indenters, i: int, x: wp.vec3d):
     """(g, n): penetration depth (mm, 0 if outside) and push-out direction in the gel frame.
 
-    Inside a face (the usual case), and at an edge or a vertex inside a flat region (``_in_flat_region``), g is the
+    Inside a face (the usual case), and on an edge between two coplanar faces (``_on_flat_edge``), g is the
     distance to the face plane along its outward normal, computed in float64; near any other edge or vertex of the
     indenter n points to the float64 closest point of the face (``_closest_on_triangle``). A point outside
     the mesh's bounding box is outside the mesh: (0, +z) without a mesh query. Inside or outside: where the closest
@@ -201,7 +214,7 @@ def penetration(ind: Indenters, i: int, x: wp.vec3d):
         if not (hit.result and hit.sign < 0.0):
             return g, n
         p0, nf = _face_plane(ind.mesh[i], hit.face)
-    if _inside_face(hit, edge_tol) or _in_flat_region(ind, i, hit, nf, edge_tol):
+    if _inside_face(hit, edge_tol) or _on_flat_edge(ind, i, hit, nf, edge_tol):
         g = wp.dot(p0 - q, nf)
         n = _rotate(ind.pose[i], nf)
     else:
