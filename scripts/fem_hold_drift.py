@@ -47,8 +47,8 @@ def hold_frames(setup) -> int:
 
 
 def drift(rows: dict, held: int) -> dict:
-    """Per hold frame: the largest marker move since the frame before the hold (mm), indenter 0's tangential and
-    normal force (N) and the Newton iterations; the same quantities for the frame before the hold as ``before``."""
+    """Per hold frame, the largest marker move since the frame before the hold (mm); from the frame before the hold
+    on, indenter 0's tangential and normal force (N) and the Newton iterations."""
     markers, forces = np.array(rows["markers"]), np.array(rows["forces"])[:, 0]
     last = len(markers) - held - 1
     return {"drift_mm": np.linalg.norm(markers[last + 1:] - markers[last], axis=2).max(axis=1).tolist(),

@@ -131,7 +131,8 @@ def _penetrations_and_normals(ind: indenter_query.Indenters, points: wp.array(dt
 def test_penetration_at_an_edge_inside_a_flat_face_is_exact(device: str):
     """A 40 x 40 mm plate's bottom face is two triangles that meet along its diagonal x + y = 0. Under it, points within
     1e-5 mm of the diagonal have their closest point on that edge, where the depth and normal were taken from Warp's
-    float32 closest point: up to 8.6e-8 mm and 0.033 off on these points (depths 1e-4 to 1e-2 mm; commit 0623410),
+    float32 closest point: up to 8.6e-8 mm and 0.033 off on these points (depths 1e-4 to 1e-2 mm; commit 0623410, a
+throwaway check),
     enough noise in the contact energy that Newton stalled on a plate pressed onto a block
     (``test_plate_wider_than_the_gel_presses_it_in_few_newton_iterations``). An edge between coplanar faces now takes
     the face's plane (``_on_flat_edge``): exact to round-off."""
