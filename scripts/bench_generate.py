@@ -15,7 +15,8 @@ table into BENCHMARKS.md (section ``generate``) with the machine it ran on and t
 ``--summarize DIR`` reads a dataset folder, finished or cut short, and prints what its frames' solver records say
 (physics seconds and Newton iterations per frame, per sequence) and the failures kept for resuming, and how many more
 Newton systems batches of sequences solved in lockstep would take (``lockstep_ratio``: the cost side of a batched
-solver, issue 12).
+solver, issue 12), and what friction's lag leaves unbalanced over the contact force (``SolverRecord.friction_lag_residual_n``;
+``--worst N`` lists the N frames where that is largest).
 
 ``--mesh-only`` builds and caches the gel mesh of each of those sequences (their marker layouts differ) and
 stops: for a benchmark machine without fTetWild, carry the cache folder (``TRANSTAC_SIM_CACHE``) there; its
@@ -51,12 +52,14 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),
          mesh_only: bool = typer.Option(False, help="only build and cache the sequences' gel meshes"),
          out: Path | None = typer.Option(None, help="dataset folder, kept (resumable); default: a temporary one"),
-         summarize: Path | None = typer.Option(None, help="only print the solver records of this dataset folder")) -> None:
+         summarize: Path | None = typer.Option(None, help="only print the solver records of this dataset folder"),
+         worst: int = typer.Option(0, min=0, help="with --summarize: also list this many frames whose friction lag "
+                                   "leaves the largest imbalance against their contact force")) -> None:
     if mesh_only:
         _mesh_sequences(scene, sequences)
         return
     if summarize:
-        print(solver_summary(summarize))
+        print(solver_summary(summarize, worst))
         return
     from transtac_sim.meshing.cache import cache_dir
 
@@ -116,15 +119,22 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
 LOCKSTEP_BATCHES = (2, 4, 8)
 
 
-def solver_summary(root: Path) -> str:
+def solver_summary(root: Path, worst: int = 0) -> str:
     """The physics of a dataset folder (finished or cut short), from its frames' ``labels.json`` solver records and
-    the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence."""
+    the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence; friction's
+    lag residual over the contact force, and the ``worst`` frames by it."""
     import statistics
 
     frames: dict[str, list[dict]] = {}
+    lagged = []  # (lag residual / largest |force|, sequence, frame, |force|, record) of frames with both
     for path in sorted(root.glob("sequences/*/*/labels.json")):
         labels = json.loads(path.read_text())
         frames.setdefault(labels["sequence"], []).append(labels["solver"])
+        force = max((sum(f * f for f in i["force_n"]) ** 0.5 for i in labels.get("indenters", [])), default=0.0)
+        if "friction_lag_residual_n" in labels["solver"] and force > 0.0:
+            lagged.append((labels["solver"]["friction_lag_residual_n"] / force, labels["sequence"], labels.get("frame"),
+                           force, labels["solver"]))
+    lag_share = [x[0] for x in lagged]
     failures = [json.loads(p.read_text()) for p in sorted(root.glob(".resume/*.json"))]
     records = [r for rs in frames.values() for r in rs]
     lines = [f"{root}: {len(records)} frames with labels in {len(frames)} sequences; "
@@ -140,6 +150,14 @@ def solver_summary(root: Path) -> str:
                      f"{statistics.median(its):g}, max {max(its)}; frames with sub-steps: "
                      f"{sum(r.get('substeps', 1) > 1 for r in records)}; not converged: "
                      f"{sum(not r['converged'] for r in records)}")
+        if lag_share:
+            high = statistics.quantiles(lag_share, n=10, method="inclusive")[-1] if len(lag_share) > 1 else lag_share[0]
+            lines.append(f"friction's lag left unbalanced (labels.json solver friction_lag_residual_n over the largest "
+                         f"indenter force) in {len(lag_share)} frames with contact: median "
+                         f"{statistics.median(lag_share):.1e}, 90th percentile {high:.1e}, max {max(lag_share):.1e}")
+        lines += [f"- {seq} frame {frame}: friction's lag leaves {r['friction_lag_residual_n']:.3g} N against "
+                  f"|force| {force:.3g} N ({share:.2f}); {r['iterations']} Newton iterations"
+                  for share, seq, frame, force, r in sorted(lagged, key=lambda x: -x[0])[:worst]]
         lines.append("solved in lockstep (batches of K sequences in one solve, each frame taking its batch's largest "
                      "Newton iteration count): " + ", ".join(
                          f"K = {k}: {lockstep_ratio(its_by_sequence, k):.2f}x the Newton systems" for k in LOCKSTEP_BATCHES

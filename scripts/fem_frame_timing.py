@@ -7,7 +7,7 @@
 ``--trajectory-from SCENE`` replaces the indenters' trajectories and friction by those of SCENE's indenters
 (same order): the press-and-slide motion on the tiny scene's mesh. Per frame it prints the solver record:
 Newton iterations (Hessian assemblies), line-search halvings, contact stiffness raises, warm starts,
-sub-steps, seconds.
+sub-steps, seconds, the residual and what friction's lag leaves unbalanced (``SolverRecord.friction_lag_residual_n``).
 
 ``--friction MU`` replaces every indenter's friction coefficient (0: frictionless), e.g. to see what friction costs.
 ``--no-friction-memory`` measures each step's slip afresh (``SolverSettings.friction_memory``, the friction model before
@@ -76,7 +76,8 @@ def with_friction(setup, friction: float):
 
 def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, sequence: int | None = None,
         friction_lag_moves: int | None = None, friction: float | None = None) -> dict:
-    """Solves the frames; returns the run's description and per-frame solver records."""
+    """Solves the frames; returns the run's description, per-frame solver records, forces (N) and markers (gel frame,
+    mm)."""
     setup = load_setup(scene) if sequence is None else _sequence_setup(scene, sequence)
     physics = setup.scene.physics.model_copy(update={"degree": degree} | (
         {"friction_lag_moves": friction_lag_moves} if friction_lag_moves is not None else {}))
@@ -100,16 +101,18 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     device = physics_device(setup.scene.physics.device)
     print(f"{what} on a {os.cpu_count()}-core CPU (physics device {device}), P{degree}, {frames} frame(s)")
     clock, t0, load0 = StageClock(), time.perf_counter(), os.getloadavg()[0]
-    forces = []
+    forces, markers = [], []
     try:
         for f in simulate_frames(setup, frames, clock):
             forces.append([x.tolist() for x in f.forces_n])
+            markers.append(f.markers_gel_mm)
             r = records[-1] if records else {}
             print(f"frame {f.frame}: {f.solver['seconds']:.1f} s, {f.solver['iterations']} Newton iterations, "
                   f"{r.get('backtracks', '-')} line-search halvings, {r.get('stiffness_raises', '-')} stiffness raises, "
                   f"{r.get('warm_starts', '-')} warm starts, {r.get('lag_updates', '-')} lag moves, {f.solver['substeps']} "
                   f"sub-step(s), residual "
-                  f"{f.solver['residual']:.2e} N, min det F {f.solver['min_det_f']:.3f}, forces "
+                  f"{f.solver['residual']:.2e} N (lag at the solution: {f.solver['friction_lag_residual_n']:.2e} N), "
+                  f"min det F {f.solver['min_det_f']:.3f}, forces "
                   f"{[x.round(4).tolist() for x in f.forces_n]} N (wall {time.perf_counter() - t0:.1f} s)", flush=True)
     finally:
         QuasiStaticSolver.solve_frame = solve_frame
@@ -117,7 +120,8 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     return {"scene": what, "device": device, "degree": degree, "frames": frames, "load_average": [load0, os.getloadavg()[0]],
             "iterations": [r["iterations"] for r in records], "seconds": [round(r["seconds"], 2) for r in records],
             "backtracks": [r.get("backtracks") for r in records], "lag_moves": [r.get("lag_updates") for r in records],
-            "forces_n": forces}
+            "lag_residual_n": [r.get("friction_lag_residual_n") for r in records],
+            "forces_n": forces, "markers_mm": markers}
 
 
 def _stored_runs() -> dict:
@@ -184,7 +188,8 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
         from benchmarks_md import update_section
 
         runs = _stored_runs()
-        runs[f"{label or 'run'}|{result['scene']}"] = {k: v for k, v in result.items() if k != "forces_n"}
+        runs[f"{label or 'run'}|{result['scene']}"] = {k: v for k, v in result.items()
+                                                        if k not in ("forces_n", "markers_mm")}
         update_section(BENCHMARKS, SECTION, _markdown(runs))
         print(f"BENCHMARKS.md: {SECTION} updated")
 

@@ -32,3 +32,17 @@ def test_summary_reads_the_solver_records(tmp_path):
     assert "K = 2: 1.29x the Newton systems" in text  # 2 x (7 + 20) = 54 against 5 + 20 + 7 + 10 = 42
     assert "K = 4" not in text  # more than the sequences there are
     assert "seq_00001: 2 frames, 1.0 s of physics, Newton iterations [7, 10]" in text
+    assert "friction's lag" not in text  # records without it (written before it was recorded)
+
+
+def test_summary_gives_friction_s_lag_residual_against_the_contact_force(tmp_path):
+    for frame, (lag, force) in enumerate(((0.01, [0.0, 3.0, -4.0]), (0.2, [0.0, 0.0, -2.0]), (0.5, [0.0, 0.0, 0.0]))):
+        path = tmp_path / "sequences" / "seq_00000" / f"{frame:06d}" / "labels.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"sequence": "seq_00000", "frame": frame, "indenters": [{"force_n": force}], "solver": {
+            "iterations": 3, "seconds": 0.5, "converged": True, "friction_lag_residual_n": lag}}))
+    text = solver_summary(tmp_path, worst=1)
+    # 0.01 / 5 and 0.2 / 2; the frame without contact force is left out
+    assert "in 2 frames with contact: median 5.1e-02, 90th percentile 9.0e-02, max 1.0e-01" in text, text
+    assert "- seq_00000 frame 1: friction's lag leaves 0.2 N against |force| 2 N (0.10); 3 Newton iterations" in text
+    assert "seq_00000 frame 0: friction" not in text  # only the worst one

@@ -44,7 +44,7 @@ def test_contact_free_scene_writes_rest_frames(tmp_path):
         record = json.loads((out / "frames" / f"{f:06d}.json").read_text())
         assert record["frame"] == f and record["time_s"] == f / 30.0
         assert record["solver"] == {"converged": True, "iterations": 0, "residual": 0.0, "seconds": 0.0,
-                                    "min_det_f": 1.0, "substeps": 0}
+                                    "min_det_f": 1.0, "substeps": 0, "friction_lag_residual_n": 0.0}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "done" and summary["frames_written"] == summary["frames_requested"] == 3
     assert summary["failure"] is None and summary["contact"] is False
@@ -110,6 +110,8 @@ def test_press_moves_the_surface_under_the_sphere_by_the_press_depth(tmp_path):
     assert record["indenters"][0]["force_n"] == f.tolist()
     s = record["solver"]
     assert s["converged"] is True and s["iterations"] > 0 and 0 < s["min_det_f"] <= 1.0 and s["substeps"] >= 1
+    # the sphere's default friction (0.5) on a straight press: the lag is moved close to the solution (2e-3 N on this CPU)
+    assert 0.0 < s["friction_lag_residual_n"] < 0.02 * abs(f[2]), (s, f)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "done" and summary["frames_written"] == 1 and summary["contact"] is True
     assert _png_size(out / "displacement.png") == IMAGE_SIZE_PX

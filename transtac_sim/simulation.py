@@ -142,5 +142,6 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
         yield PhysicsFrame(
             f, markers, g.vertices_mm + res.displacement_mm, g.vertices_mm, faces, poses, forces, depths,
             {"converged": bool(r.converged), "iterations": int(r.iterations), "residual": float(r.residual),
-             "seconds": float(r.seconds), "min_det_f": float(r.min_det_f), "substeps": int(r.substeps)},
+             "seconds": float(r.seconds), "min_det_f": float(r.min_det_f), "substeps": int(r.substeps),
+             "friction_lag_residual_n": float(r.friction_lag_residual_n)},
         )

@@ -79,6 +79,22 @@ class Assembly:
             fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
                             values=self._contact_values(ind))
 
+    def _friction_lag_residual(self, ind) -> float:
+        """|g| (N, on the free dofs) at self.u with friction's lag moved to u: the force imbalance that the lag leaves
+        at a converged state (round-off where the lag converged, u_lag = u; up to ``friction_lag_moves`` moves may
+        stop short of that). 0 without friction. The lag and its state are put back."""
+        if not ind.count or not any(i.friction > 0 for i in self.indenters):
+            return 0.0
+        st = self._contact_state
+        lagged = (self.u_lag.dof_values, st.lag_g, st.lag_n)
+        kept = [wp.clone(a) for a in lagged]
+        wp.copy(self.u_lag.dof_values, self.u.dof_values)
+        self._update_lag(ind)
+        residual = self._free_norm(self._gradient(ind))
+        for a, b in zip(lagged, kept, strict=True):
+            wp.copy(a, b)
+        return residual
+
     def _keep_stick(self, ind) -> None:
         """Friction's stretch at the converged u, carried into the next step (contact.py ``stick_form``); left at 0
         without ``SolverSettings.friction_memory`` (each step's slip then starts from no traction)."""

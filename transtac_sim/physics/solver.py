@@ -323,7 +323,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
                 f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
-        g = self._gradient(ind)
+        residual = self._free_norm(self._gradient(ind))
+        lag_residual = self._friction_lag_residual(ind)  # after the residual: it evaluates the gradient again
         wrench = np.zeros((len(self.indenters), 6))
         for i in range(len(self.indenters)):
             for c in range(6):
@@ -334,7 +335,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
         record = SolverRecord(
             converged=True,
             iterations=total_iterations,
-            residual=self._free_norm(g),
+            residual=residual,
+            friction_lag_residual_n=lag_residual,
             min_det_f=self._min_det(self.u),  # > 0: no step that inverts an element is ever accepted
             seconds=time.perf_counter() - t0,
             substeps=steps,

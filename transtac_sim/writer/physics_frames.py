@@ -10,7 +10,8 @@ DIR/mesh.npz            vertices_mm (V,3) rest tet-mesh vertices, tets (T,4), bo
 DIR/frames/NNNNNN.npz   vertices_mm (V,3) deformed vertices (contact scenes only), markers_mm (K,3) marker
                         centres (row i is marker_ids[i]), indenter_poses_mm (n,4,4) indenter -> gel frame
                         (translation in mm), forces_n (n,3) force of each indenter on the gel, depths_mm (n,)
-DIR/frames/NNNNNN.json  frame, time_s, solver {converged, iterations, residual, seconds, min_det_f, substeps},
+DIR/frames/NNNNNN.json  frame, time_s, solver {converged, iterations, residual, seconds, min_det_f, substeps,
+                         friction_lag_residual_n},
                         indenters [{name, pose_mm, force_n, depth_mm}], max_marker_displacement_mm
 DIR/summary.json        kind, scene, scene_config, status (running | done | failed), frames_requested,
                         frames_written, failure {frame, message} or null, per-stage and per-frame seconds
@@ -130,6 +131,7 @@ def write_frame(out: Path, setup: SceneSetup, phys: PhysicsFrame) -> dict:
     solver = dict(phys.solver)
     solver.setdefault("min_det_f", 1.0)
     solver.setdefault("substeps", 0)
+    solver.setdefault("friction_lag_residual_n", 0.0)
     du = np.linalg.norm(phys.markers_gel_mm - setup.sensor.markers_rest_gel_mm, axis=1)
     record = {
         "frame": phys.frame, "time_s": phys.frame / setup.scene.outputs.frame_rate_hz, "solver": solver,
