@@ -1,0 +1,64 @@
+"""scripts/fem_coupled_friction.py: its coupling term is the derivative of friction's gradient through the normal
+pressure, checked against central differences of the gradient with the lag at u."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import warp as wp
+import warp.fem as fem
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+from fem_coupled_friction import coupling_form  # noqa: E402
+
+from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter  # noqa: E402
+from transtac_sim.physics.box_mesh import box_tet_mesh  # noqa: E402
+from transtac_sim.physics.elasticity import EXACT  # noqa: E402
+from transtac_sim.physics.host_factorisation import bsr_to_scipy  # noqa: E402
+
+
+def _pose(x, z):
+    P = np.eye(4)
+    P[0, 3], P[2, 3] = x, z
+    return P
+
+
+def test_coupling_term_is_the_gradient_s_derivative_through_the_normal_pressure():
+    """A plate wider than the block (every top point in contact, one flat face: n does not change with u, so the term
+    is the whole of what the lag leaves out) pressed 0.1 mm and slid 0.2 mm with friction 0.5. At the slid state
+    G(u) = gradient with the lag moved to u; (H + J_c) d must match (G(u + h d) - G(u - h d)) / 2h, where H alone
+    misses the pressure's share of friction."""
+    V, T = box_tet_mesh(np.linspace(-2, 2, 5), np.linspace(-2, 2, 5), np.linspace(0, 2, 3))
+    plate = RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)), 0.5)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [plate])
+    solver.start([_pose(0.0, 3.0 + 1e-3)])
+    solver.solve_frame([_pose(0.0, 2.9)])
+    solver.solve_frame([_pose(0.2, 2.9)])
+    ind, free = solver._last_ind, solver._linear._free
+
+    def gradient(u: np.ndarray) -> np.ndarray:
+        solver.u.dof_values.assign(u.reshape(-1, 3))
+        wp.copy(solver.u_lag.dof_values, solver.u.dof_values)
+        solver._update_lag(ind)
+        return solver._gradient(ind).numpy().reshape(-1)[free].copy()
+
+    u = solver.u.dof_values.numpy().reshape(-1).copy()
+    gradient(u)
+    H = bsr_to_scipy(solver._hessian(ind, 1.0, EXACT)).tocsr()[free][:, free]
+    trial = fem.make_trial(solver._space, domain=solver._sides)
+    test = fem.make_test(solver._space, domain=solver._sides)
+    J_c = fem.integrate(coupling_form, quadrature=solver._q_contact,
+                        fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
+                        values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
+    J_c = bsr_to_scipy(J_c).tocsr()[free][:, free]
+    d = np.random.default_rng(0).standard_normal(len(free))
+    h = 1e-6 / np.abs(d).max()  # 1e-6 mm: no point crosses the contact or stick-slip boundary
+    step = np.zeros_like(u)
+    step[free] = h * d
+    difference = (gradient(u + step) - gradient(u - step)) / (2.0 * h)
+    error_coupled = np.linalg.norm(H @ d + J_c @ d - difference)
+    error_symmetric = np.linalg.norm(H @ d - difference)
+    assert np.linalg.norm(J_c @ d) > 0.05 * np.linalg.norm(difference)  # the term matters here
+    assert error_coupled < 1e-4 * np.linalg.norm(difference), (error_coupled, error_symmetric)
+    assert error_symmetric > 100.0 * error_coupled
