@@ -11,10 +11,11 @@ g(u) too, dg/dx = -n, so
 
     J = H(u) + J_c,   J_c = -mu k f1(y) t n^T   (per contact point: the rows of t, the columns of n)
 
-integrated over the contact sides (n's own derivative is left out: exact on a flat indenter face). J is not symmetric,
-so each system is solved by LU (SuperLU, a new factorisation per iteration: seconds on the tiny mesh), and the line
-search backtracks on |gradient|^2 (the Newton direction of the coupled problem lowers it; E with a moving lag is no
-merit function) while keeping det F > 0. No stiffness raise, no stall test: a study, not the solver. Its solution is the
+integrated over the contact sides. n's own derivative is left out, here and in the solver's normal term (k g dn/du):
+J is exact on a flat indenter face, not on a curved one such as the default sphere, where its direction need not lower
+the merit. J is not symmetric, so each system is solved by LU (SuperLU, a new factorisation per iteration: seconds on the
+tiny mesh), and the line search backtracks on |gradient|^2 (the exact Newton direction of the coupled problem lowers it;
+E with a moving lag is no merit function) while keeping det F > 0. No stiffness raise, no stall test: a study, not the solver. Its solution is the
 lag's fixed point, so its frames' ``friction_lag_residual_n`` is round-off.
 
 Reports per run (the lagged solver with each count in ``--moves``, then this Newton): Newton iterations per frame,
@@ -51,7 +52,8 @@ MAX_ITERATIONS = 80
 @fem.integrand
 def coupling_form(s: fem.Sample, domain: fem.Domain, du: fem.Field, v: fem.Field, u: fem.Field, u_prev: fem.Field,
                   ind: Indenters, st: ContactState):
-    """J_c's bilinear form: -mu k f1(y)/y (u_t . v)(n . du) where u is in contact (the lag at u)."""
+    """J_c's bilinear form (N/mm^3 per unit area, integrated over the contact sides to N/mm): -mu k f1(y)/y (u_t . v)
+    (n . du) where u is in contact (the lag at u)."""
     X = fem.position(domain, s)
     x = X + u(s)
     h = wp.float64(0.0)
@@ -66,7 +68,8 @@ def coupling_form(s: fem.Sample, domain: fem.Domain, du: fem.Field, v: fem.Field
 
 
 def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
-    """Newton on the lag-free problem for one load step, in place of ``NewtonSteps._newton`` (same result tuple)."""
+    """Newton on the lag-free problem for one load step, in place of ``NewtonSteps._newton`` (same result tuple;
+    ``may_stall`` is ignored: no stall test)."""
     free, tol = solver._linear._free, solver.settings.newton_tol_mm
     trial = fem.make_trial(solver._space, domain=solver._sides)
     test = fem.make_test(solver._space, domain=solver._sides)

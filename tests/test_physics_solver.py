@@ -143,8 +143,9 @@ def test_slide_friction_with_few_lag_moves_is_near_the_converged_lag(lag_converg
     _, _, results = _slide(0.5, lag_moves)
     ratio = [r.forces_n[0, 0] / -r.forces_n[0, 2] for r in results]
     np.testing.assert_allclose(ratio, [r.forces_n[0, 0] / -r.forces_n[0, 2] for r in reference], rtol=rtol)
-    # the record tells a lag cut short: the imbalance it leaves is far above the converged lag's (on this CPU, 12
-    # moves: 1e-5 N; 4 moves: up to 1.8e-4 N; 1 move: 1.2e-3 to 5e-3 N), while Newton's own residual is round-off
+    # the record tells a lag cut short: the imbalance it leaves is far above the converged lag's (printed from these
+    # slides in a throwaway loop on this CPU: 12 moves 1e-5 N; 4 moves up to 1.8e-4 N; 1 move 1.2e-3 to 5e-3 N), while
+    # Newton's own residual is round-off
     converged = max(r.record.friction_lag_residual_n for r in reference)
     assert converged < 1e-4, converged
     assert max(r.record.friction_lag_residual_n for r in results) > 3.0 * converged

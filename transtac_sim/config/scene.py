@@ -79,10 +79,11 @@ class Physics(_Strict):
         "(0.01: stricter sticking, about 1.5x the Newton iterations)")
     friction_lag_moves: int = Field(
         default=4, ge=1, le=50, description="friction's normal pressure and tangent plane are lagged and moved to "
-        "the current state at most this often per load step: 4 matches a 12-move solution's friction forces within "
-        "0.5 %; 1 takes a third fewer Newton iterations on press_slide, friction within 2 % there but 16 % on a coarse "
-        "mesh (BENCHMARKS.md fem_friction_lag_moves, fem_friction_lag_moves_gpu). Where the lag did not converge, the "
-        "frame's solver record says how much it leaves unbalanced (friction_lag_residual_n, N)")
+        "the current state at most this often per load step: on press_slide and the tiny mesh 4 match a 12-move "
+        "solution's friction forces within 0.5 %; 1 takes a third fewer Newton iterations on press_slide, friction "
+        "within 2 % there but 16 % on a coarse mesh (BENCHMARKS.md fem_friction_lag_moves, fem_friction_lag_moves_gpu). "
+        "Where the lag did not converge, the frame's solver record says how much it leaves unbalanced "
+        "(friction_lag_residual_n, N)")
     linear_solver: Literal["auto", "direct", "cg"] = Field(
         default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
         "auto: cg on a GPU, else direct")

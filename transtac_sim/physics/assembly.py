@@ -80,19 +80,20 @@ class Assembly:
                             values=self._contact_values(ind))
 
     def _friction_lag_residual(self, ind) -> float:
-        """|g| (N, on the free dofs) at self.u with friction's lag moved to u: the force imbalance that the lag leaves
-        at a converged state (round-off where the lag converged, u_lag = u; up to ``friction_lag_moves`` moves may
-        stop short of that). 0 without friction. The lag and its state are put back."""
+        """|g| (N, on the free dofs) at self.u with friction's lagged pressure and tangent plane taken at u: the force
+        imbalance that the lag leaves at a converged state. Small where the lag converged (Newton moves it only while it
+        is 10 newton_tol_mm or more from u: 1e-6 to 1e-4 N in BENCHMARKS.md ``fem_friction_lag_residual``); larger where
+        ``friction_lag_moves`` ran out first. 0 without friction. The lagged state is put back, but the gradient and the
+        contact state (traction, stiffnesses) are left at this evaluation: call ``_gradient`` after it."""
         if not ind.count or not any(i.friction > 0 for i in self.indenters):
             return 0.0
         st = self._contact_state
-        lagged = (self.u_lag.dof_values, st.lag_g, st.lag_n)
-        kept = [wp.clone(a) for a in lagged]
-        wp.copy(self.u_lag.dof_values, self.u.dof_values)
-        self._update_lag(ind)
+        kept = (wp.clone(st.lag_g), wp.clone(st.lag_n))
+        fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u.trace()},
+                        values=self._contact_values(ind))
         residual = self._free_norm(self._gradient(ind))
-        for a, b in zip(lagged, kept, strict=True):
-            wp.copy(a, b)
+        wp.copy(st.lag_g, kept[0])
+        wp.copy(st.lag_n, kept[1])
         return residual
 
     def _keep_stick(self, ind) -> None:

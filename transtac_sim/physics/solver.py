@@ -323,8 +323,8 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
                 f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
+        lag_residual = self._friction_lag_residual(ind)  # first: the gradient below then leaves a consistent state
         residual = self._free_norm(self._gradient(ind))
-        lag_residual = self._friction_lag_residual(ind)  # after the residual: it evaluates the gradient again
         wrench = np.zeros((len(self.indenters), 6))
         for i in range(len(self.indenters)):
             for c in range(6):
