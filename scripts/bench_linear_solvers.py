@@ -30,7 +30,7 @@ import warp as wp
 from warp.optim.linear import FSAI, cg, preconditioner
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmarks_md import machine_name, update_section  # noqa: E402
+from benchmarks_md import machine_name, publish  # noqa: E402
 
 from transtac_sim.dataset.sequence import StageClock  # noqa: E402
 from transtac_sim.physics import device_linear  # noqa: E402
@@ -124,12 +124,7 @@ def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frame
         it, s, e = zip(*r, strict=True)
         lines.append(f"| {name} | {tol:g} | {statistics.median(it):g} | {1000 * statistics.median(s):.1f} | "
                      f"{statistics.median(e):.2e} |")
-    text = "\n".join(lines)
-    print(text)
-    if md_out:
-        md_out.write_text(text + "\n")
-    if benchmarks:
-        update_section(ROOT / "BENCHMARKS.md", f"linear_solvers_{'gpu' if 'cuda' in device else 'cpu'}", text)
+    publish("\n".join(lines), md_out, benchmarks, f"linear_solvers_{'gpu' if 'cuda' in device else 'cpu'}")
 
 
 if __name__ == "__main__":

@@ -50,6 +50,16 @@ def update_section(path: Path, name: str, markdown: str) -> None:
     path.write_text(text)
 
 
+def publish(markdown: str, md_out: Path | None, benchmarks: bool, section: str) -> None:
+    """A benchmark script's table: printed, written to ``md_out`` where given, and with ``benchmarks`` into
+    BENCHMARKS.md's ``section``."""
+    print(markdown)
+    if md_out:
+        md_out.write_text(markdown + "\n")
+    if benchmarks:
+        update_section(Path(__file__).resolve().parents[1] / "BENCHMARKS.md", section, markdown)
+
+
 def _store(section: str = typer.Argument(..., help="the BENCHMARKS.md section's name"),
            markdown: Path = typer.Argument(..., exists=True, dir_okay=False, help="a file with the section's body")) -> None:
     """Writes a section measured elsewhere (a GPU) into BENCHMARKS.md."""

@@ -35,7 +35,7 @@ import warp as wp
 import warp.fem as fem
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmarks_md import machine_name, update_section  # noqa: E402
+from benchmarks_md import machine_name, publish  # noqa: E402
 from fem_frame_timing import run  # noqa: E402
 
 from transtac_sim.physics import QuasiStaticSolver  # noqa: E402
@@ -147,12 +147,7 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                      f"{max(r['lag_residual_n']):.2g} | "
                      f"{np.max(np.linalg.norm(np.array(r['markers_mm']) - ref_markers, axis=-1)):.4f} | "
                      f"{sum(r['seconds']):.0f} |")
-    md = "\n".join(lines)
-    print(md)
-    if md_out:
-        md_out.write_text(md + "\n")
-    if benchmarks:
-        update_section(REPO / "BENCHMARKS.md", SECTION, md)
+    publish("\n".join(lines), md_out, benchmarks, SECTION)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ import numpy as np
 import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmarks_md import machine_name, update_section  # noqa: E402
+from benchmarks_md import machine_name, publish  # noqa: E402
 from fem_frame_timing import run  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,13 +81,8 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press.
                      f"{', '.join(f'{x:.3f}' for x in np.linalg.norm(forces[sliding, :2], axis=1))} | "
                      f"{np.max(np.linalg.norm(np.array(r['markers_mm']) - ref_markers, axis=-1)):.4f} | "
                      f"{max(r['lag_residual_n']):.2g} |")
-    md = "\n".join(lines)
-    print(md)
+    publish("\n".join(lines), md_out, benchmarks, section)
     print("median Newton iterations per frame:", {m: statistics.median(r["iterations"]) for m, r in runs.items()})
-    if md_out:
-        md_out.write_text(md + "\n")
-    if benchmarks:
-        update_section(REPO / "BENCHMARKS.md", section, md)
 
 
 if __name__ == "__main__":

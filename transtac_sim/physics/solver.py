@@ -5,7 +5,8 @@ E(u) = E_el(u) + E_contact(u) (see elasticity.py, contact.py) over the displacem
 tet mesh, with u = 0 on the fixed components (default: every vertex with z <= tol, the bonded face).
 
 This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs) and the frame API. The assembly of E,
-its gradient and Hessian is in assembly.py. The Newton iteration of one (sub)step is in newton.py: warm start
+its gradient and Hessian is in assembly.py; the displacement at points inside the tets (markers) in
+point_displacement.py. The Newton iteration of one (sub)step is in newton.py: warm start
 from the extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a
 line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
 A step that does not converge (or stalls: newton.py ``STALL_STEPS``) or leaves a penetration above
@@ -33,6 +34,7 @@ from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
 from transtac_sim.physics.newton import NewtonSteps
+from transtac_sim.physics.point_displacement import PointDisplacement
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solver's API)
     FrameResult,
@@ -51,7 +53,7 @@ def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return P
 
 
-class QuasiStaticSolver(Assembly, NewtonSteps):
+class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
@@ -370,38 +372,3 @@ class QuasiStaticSolver(Assembly, NewtonSteps):
 
     def nodal_displacement(self) -> np.ndarray:
         return self.u.dof_values.numpy()
-
-    def displacement_at(self, tet_index: np.ndarray, barycentric: np.ndarray) -> np.ndarray:
-        """(K,3) displacement at points given by tet index (K,) and barycentric weights (K,4) of the tet's
-        vertices (in the order of ``tets`` as given), exact for the element order used."""
-        tet_index = np.asarray(tet_index, dtype=np.int32)
-        b = np.asarray(barycentric, dtype=np.float64)
-        if b.shape != (len(tet_index), 4):
-            raise ValueError("barycentric must be (K,4)")
-        # tets that were re-oriented had vertices 1 and 2 swapped
-        q = self._q_points(tet_index, b)
-        out = wp.empty(len(tet_index), dtype=wp.vec3d, device=self.device)
-        fem.interpolate(_displacement_form, dest=out, at=q, fields={"u": self.u})
-        return out.numpy()
-
-    def _q_points(self, tet_index, b):
-        coords = np.empty((len(tet_index), 3))
-        given = self._given_order(tet_index)
-        for k in range(3):
-            coords[:, k] = np.take_along_axis(b, given[:, k + 1 : k + 2], axis=1)[:, 0]
-        return fem.PicQuadrature(
-            self._cells,
-            (wp.array(tet_index, dtype=int, device=self.device), wp.array(coords, dtype=wp.vec3d, device=self.device)),
-        )
-
-    def _given_order(self, tet_index):
-        """For each stored tet vertex slot, the slot it had in the input tets."""
-        order = np.tile(np.arange(4), (len(tet_index), 1))
-        flipped = self._flipped[tet_index]
-        order[flipped] = order[flipped][:, [0, 2, 1, 3]]
-        return order
-
-
-@fem.integrand
-def _displacement_form(s: fem.Sample, u: fem.Field):
-    return u(s)
