@@ -73,10 +73,10 @@ class Assembly:
     def _contact_values(self, ind) -> dict:
         return {"ind": ind, "st": self._contact_state}
 
-    def _update_lag(self, ind) -> None:
-        """Friction's lagged normal pressure and tangent plane, from u_lag."""
+    def _update_lag(self, ind, u=None) -> None:
+        """Friction's lagged normal pressure and tangent plane, from the field ``u`` (default u_lag)."""
         if ind.count:
-            fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u_lag.trace()},
+            fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": (self.u_lag if u is None else u).trace()},
                             values=self._contact_values(ind))
 
     def _friction_lag_residual(self, ind) -> float:
@@ -89,8 +89,7 @@ class Assembly:
             return 0.0
         st = self._contact_state
         kept = (wp.clone(st.lag_g), wp.clone(st.lag_n))
-        fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": self.u.trace()},
-                        values=self._contact_values(ind))
+        self._update_lag(ind, self.u)
         residual = self._free_norm(self._gradient(ind))
         wp.copy(st.lag_g, kept[0])
         wp.copy(st.lag_n, kept[1])
