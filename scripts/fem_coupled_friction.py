@@ -1,6 +1,8 @@
-"""Study: friction's normal pressure implicit in Newton (no lag loop) against the lagged solver, on the host.
+"""Study: friction's normal pressure implicit in Newton (no lag loop) against the lagged solver.
 
-    .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--md-out FILE] [--benchmarks]
+    .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--linear lu|gmres]
+        [--sequence I] [--trajectory-from SCENE] [--md-out FILE] [--benchmarks]
+    python scripts/fem_coupled_friction.py scenes/train_random.toml --sequence 2 --moves 1,4 --linear gmres   (a GPU)
 
 The solver lags friction's normal pressure lam = k g and tangent plane n at u_lag (physics/contact.py) and moves the lag
 a few times per load step (newton.py ``_move_lag``): a fixed point on the pressure, each move costing Newton a few
@@ -13,14 +15,17 @@ g(u) too, dg/dx = -n, so
 
 integrated over the contact sides. n's own derivative is left out, here and in the solver's normal term (k g dn/du):
 J is exact on a flat indenter face, not on a curved one such as the default sphere, where its direction need not lower
-the merit. J is not symmetric, so each system is solved by LU (SuperLU, a new factorisation per iteration: seconds on the
-tiny mesh), and the line search backtracks on |gradient|^2 (the exact Newton direction of the coupled problem lowers it;
-E with a moving lag is no merit function) while keeping det F > 0. No stiffness raise, no stall test: a study, not the solver. Its solution is the
+the merit. J is not symmetric, so each system is solved by LU (``--linear lu``: SuperLU on the host, a new
+factorisation per iteration: seconds on the tiny mesh) or by GMRES on the solver's device (``--linear gmres``:
+``coupled_newton_gmres``; BENCHMARKS.md ``fem_coupled_friction_gpu``), and the line search backtracks on |gradient|^2
+(the exact Newton direction of the coupled problem lowers it; E with a moving lag is no merit function) while keeping
+det F > 0. No stiffness raise, no stall test: a study, not the solver. Its solution is the
 lag's fixed point, so its frames' ``friction_lag_residual_n`` is round-off.
 
 Reports per run (the lagged solver with each count in ``--moves``, then this Newton): Newton iterations per frame,
 line-search halvings, the friction force per sliding frame, the largest lag residual, and the largest marker distance
-from the coupled run. Default: the tiny press-and-slide fixture on this CPU.
+from the coupled run; a run whose frame fails is listed with its error. Default: the tiny press-and-slide fixture on
+this CPU.
 """
 
 from __future__ import annotations
@@ -39,14 +44,28 @@ from benchmarks_md import machine_name, publish  # noqa: E402
 from fem_frame_timing import run  # noqa: E402
 
 from transtac_sim.physics import QuasiStaticSolver  # noqa: E402
+from transtac_sim.physics.coarse_space import CoarseSpace, mat36d, prolong  # noqa: E402
 from transtac_sim.physics.contact import ContactState, _f1_over_y, tangential_slip  # noqa: E402
-from transtac_sim.physics.elasticity import EXACT  # noqa: E402
+from transtac_sim.physics.definite_cg import BlockJacobi  # noqa: E402
+from transtac_sim.physics.device_linear import fixed_blocks, project_fixed  # noqa: E402
+from transtac_sim.physics.elasticity import CLAMPED, EXACT  # noqa: E402
 from transtac_sim.physics.host_factorisation import bsr_to_scipy  # noqa: E402
 from transtac_sim.physics.indenter_query import Indenters, penetration  # noqa: E402
+from transtac_sim.physics.reductions import max_abs, negated_free  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "fem_coupled_friction_cpu"
 MAX_ITERATIONS = 80
+#: ``--linear gmres``: Newton's systems solved to the relative residual min(FORCING_MAX, |g| / |g_first|) (inexact
+#: Newton, as the solver's), at least GMRES_RTOL_MIN, in at most GMRES_MAXITER iterations (restarted every GMRES_RESTART)
+FORCING_MAX = 0.01
+GMRES_RTOL_MIN = 1.0e-4  # the device CG's tight tolerance (linear.py ``cg_tol``)
+GMRES_MAXITER = {EXACT: 620, CLAMPED: 3000}  # the exact Hessian's system gives up sooner: the clamped one is next
+GMRES_RESTART = 62
+#: GMRES iterations per Newton system of the last ``coupled_newton_gmres`` run, and the systems it did not solve to
+#: its tolerance with the exact Hessian (then tried with the clamped one) or with either
+gmres_iterations: list[int] = []
+gmres_unsolved = {"exact": 0, "both": 0}
 
 
 @fem.integrand
@@ -114,30 +133,169 @@ def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> t
     return False, MAX_ITERATIONS, "Newton iteration limit reached", 0.0
 
 
-def _coupled_run(scene: Path, frames: int) -> dict:
+@wp.kernel(enable_backward=False)
+def _two_level(inverse: wp.array(dtype=wp.mat33d), x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d),
+               z: wp.array(dtype=wp.vec3d), alpha: wp.float64, beta: wp.float64, basis: wp.array(dtype=mat36d),
+               aggregate: wp.array(dtype=int), values: wp.array(dtype=wp.float64)):
+    """z = alpha (D^-1 x + P values) + beta y, values = A_c^-1 P^T x (coarse_space.py's M r)."""
+    i = wp.tid()
+    z[i] = alpha * (inverse[i] * x[i] + prolong(basis, aggregate, values, i)) + beta * y[i]
+
+
+class TwoLevel(BlockJacobi):
+    """The device CG's additive two-level preconditioner, M r = D^-1 r + P A_c^-1 P^T r (coarse_space.py), as a
+    ``warp.optim.linear`` operator: block-Jacobi of the matrix given, the coarse inverse of ``coarse`` (made from a
+    symmetric positive definite matrix beforehand)."""
+
+    def __init__(self, A, coarse: CoarseSpace):
+        super().__init__(A)
+        sums = wp.zeros(1, dtype=wp.float64, device=A.device)
+
+        def matvec(x, y, z, alpha, beta):
+            coarse.restricted.zero_()
+            coarse.solve(x, sums, 0)
+            wp.launch(_two_level, dim=A.nrow, device=A.device,
+                      inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta), coarse.basis,
+                              coarse.aggregate, coarse.values])
+
+        self._matvec = matvec
+
+
+def coupled_newton_gmres(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+    """``coupled_newton`` with every array on the solver's device (a GPU's, where it has one): J = H + J_c assembled
+    there, its fixed rows and columns projected out, and each system solved by Warp's restarted GMRES preconditioned
+    with the device CG's two-level preconditioner (``TwoLevel``; block-Jacobi alone where the solver has no coarse
+    level: the host path), to the inexact-Newton tolerance ``FORCING_MAX`` / ``GMRES_RTOL_MIN`` within
+    ``GMRES_MAXITER``; where that fails J is made with the clamped Hessian (the volumetric term's geometric part
+    clamped, elasticity.py) and solved again, and the last step is taken whether solved or not. GMRES iterations per
+    system go to ``gmres_iterations``."""
+    from warp.optim.linear import gmres
+
+    tol, fixed = solver.settings.newton_tol_mm, solver._linear._fixed
+    fixed_np = fixed.numpy() > 0.5
+    trial = fem.make_trial(solver._space, domain=solver._sides)
+    test = fem.make_test(solver._space, domain=solver._sides)
+
+    def gradient_at_u() -> tuple[wp.array, float]:  # -g with the lag moved to u first, and |g| (free dofs)
+        wp.copy(solver.u_lag.dof_values, solver.u.dof_values)
+        solver._update_lag(ind)
+        return negated_free(solver._gradient(ind), solver._fixed_mask)
+
+    rhs, g_norm = gradient_at_u()
+    g_first = g_norm
+    # the coarse level where the solver's device path has one (on a GPU), its inverse made once per load step from the
+    # first Hessian at u (exact, else clamped) whose Galerkin operator is positive definite
+    setup = solver._linear._coarse_setup
+    coarse = None
+    if setup is not None:
+        coarse = getattr(solver, "_study_coarse", None) or CoarseSpace(*setup, solver.device)
+        solver._study_coarse = coarse
+        for clamp in (EXACT, CLAMPED):
+            H = wp.sparse.bsr_copy(solver._hessian(ind, 1.0, clamp))
+            project_fixed(H, fixed, fixed_blocks(H, fixed_np))
+            if coarse.update(H):
+                break
+
+    def solve(J, d: wp.array, rtol: float, clamp: int) -> tuple[bool, int]:  # J d = rhs from d: (solved, iterations)
+        M = TwoLevel(J, coarse) if coarse is not None and coarse.ready else BlockJacobi(J)
+        its, residual, atol = gmres(J, rhs, d, tol=rtol, maxiter=GMRES_MAXITER[clamp], M=M, restart=GMRES_RESTART,
+                                    check_every=GMRES_RESTART, use_cuda_graph=solver.device.is_cuda)
+        return bool(residual <= atol), int(its)
+
+    for iteration in range(1, MAX_ITERATIONS + 1):
+        J_c = fem.integrate(coupling_form, quadrature=solver._q_contact,
+                            fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
+                            values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
+        rtol, its = max(min(FORCING_MAX, g_norm / g_first), GMRES_RTOL_MIN), 0
+        for clamp in (EXACT, CLAMPED):  # the clamped Hessian where GMRES does not solve the exact one's system
+            J = wp.sparse.bsr_copy(solver._hessian(ind, 1.0, clamp))
+            wp.sparse.bsr_axpy(J_c, J)
+            project_fixed(J, fixed, fixed_blocks(J, fixed_np))
+            d = wp.zeros_like(rhs)
+            solved, n = solve(J, d, rtol, clamp)
+            step, its = max_abs(d), its + n
+            if solved and step < 100.0 * tol and rtol > GMRES_RTOL_MIN:  # near convergence the step decides: tightly
+                solved, n = solve(J, d, GMRES_RTOL_MIN, clamp)
+                step, its = max_abs(d), its + n
+            if solved:
+                break
+            gmres_unsolved["exact" if clamp == EXACT else "both"] += 1
+        gmres_iterations.append(int(its))
+        if not np.isfinite(step):
+            return False, iteration, "GMRES gave a non-finite step", 0.0
+        if step < tol:
+            fem.linalg.array_axpy(x=d, y=solver.u.dof_values, alpha=1.0)
+            return True, iteration, "", solver._max_penetration(ind)
+        u0 = wp.clone(solver.u.dof_values)
+        merit, alpha = g_norm * g_norm, 1.0
+        while alpha > 1e-4:
+            wp.copy(solver._u_try.dof_values, u0)
+            fem.linalg.array_axpy(x=d, y=solver._u_try.dof_values, alpha=alpha)
+            if solver._min_det(solver._u_try) > 0.0:
+                wp.copy(solver.u.dof_values, solver._u_try.dof_values)
+                rhs_try, norm_try = gradient_at_u()
+                if norm_try * norm_try <= (1.0 - 1e-4 * alpha) * merit:
+                    rhs, g_norm = rhs_try, norm_try
+                    break
+                wp.copy(solver.u.dof_values, u0)
+            alpha *= 0.5
+            solver.stats["backtracks"] += 1
+        else:
+            wp.copy(solver.u.dof_values, u0)
+            return False, iteration, "line search failed", 0.0
+    return False, MAX_ITERATIONS, "Newton iteration limit reached", 0.0
+
+
+NEWTONS = {"lu": coupled_newton, "gmres": coupled_newton_gmres}
+
+
+def _coupled_run(scene: Path, frames: int, linear: str, sequence: int | None, trajectory_from: Path | None) -> dict:
     lagged = QuasiStaticSolver._newton
-    QuasiStaticSolver._newton = coupled_newton
+    QuasiStaticSolver._newton = NEWTONS[linear]
+    gmres_iterations.clear()
+    gmres_unsolved.update(exact=0, both=0)
     try:
-        return run(scene, 2, frames, None)
+        return run(scene, 2, frames, trajectory_from, sequence)
     finally:
         QuasiStaticSolver._newton = lagged
 
 
 def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_slide.toml"),
          frames: int = typer.Option(8, min=1), moves: str = typer.Option("4,12", help="the lagged solver's lag moves"),
+         linear: str = typer.Option("lu", help="the coupled Newton's systems: lu (SuperLU on the host) or gmres "
+                                               "(Warp's GMRES on the solver's device)"),
+         sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
+         trajectory_from: Path | None = typer.Option(None, help="the indenters' motion from this scene"),
          md_out: Path | None = typer.Option(None, help="also write the table to this file"),
          benchmarks: bool = typer.Option(False, help=f"write the table into BENCHMARKS.md, section {SECTION}")) -> None:
-    runs = {f"lagged, {m} moves": run(scene, 2, frames, None, friction_lag_moves=int(m)) for m in moves.split(",")}
-    runs["coupled (no lag)"] = _coupled_run(scene, frames)
-    ref = runs["coupled (no lag)"]
+    if linear not in NEWTONS:
+        raise typer.BadParameter(f"--linear {linear!r}: allowed {', '.join(NEWTONS)}")
+    runs, failed = {}, {}
+
+    def attempt(name: str, solve) -> None:  # a run whose frame fails is reported, not the end of the study
+        try:
+            runs[name] = solve()
+        except Exception as error:  # noqa: BLE001 (SolverDidNotConverge and whatever the study's Newton raises)
+            failed[name] = f"{type(error).__name__}: {' '.join(str(error).split())[:300]}"
+            print(f"{name}: {failed[name]}", flush=True)
+
+    for m in moves.split(","):
+        attempt(f"lagged, {m} moves", lambda m=m: run(scene, 2, frames, trajectory_from, sequence,
+                                                                  friction_lag_moves=int(m)))
+    attempt("coupled (no lag)", lambda: _coupled_run(scene, frames, linear, sequence, trajectory_from))
+    if not runs:
+        raise SystemExit("every run failed")
+    ref_name = "coupled (no lag)" if "coupled (no lag)" in runs else list(runs)[-1]
+    ref = runs[ref_name]
     ref_markers = np.array(ref["markers_mm"])
     friction = np.array([np.linalg.norm(f[0][:2]) for f in ref["forces_n"]])
     sliding = friction > 0.1 * friction.max()
     lines = [f"Machine: {machine_name(ref['device'])}. Command: `.venv/bin/python scripts/fem_coupled_friction.py "
-             f"{' '.join(sys.argv[1:])}` ({ref['scene'].replace(str(REPO) + '/', '')}, P2, {frames} frames; {int(sliding.sum())} of them with a "
-             "friction force of at least 10 % of the largest).", "",
+             f"{' '.join(sys.argv[1:])}` ({ref['scene'].replace(str(REPO) + '/', '')}"
+             f"{f' sequence {sequence}' if sequence is not None else ''}, P2, {frames} frames; {int(sliding.sum())} of "
+             "them with a friction force of at least 10 % of the largest).", "",
              "| run | Newton iterations per frame | all frames | sliding frames | line-search halvings | friction force "
-             "per sliding frame (N) | largest lag residual (N) | markers vs coupled (mm) | seconds |",
+             f"per sliding frame (N) | largest lag residual (N) | markers vs {ref_name} (mm) | seconds |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, r in runs.items():
         its, forces = r["iterations"], np.array([f[0] for f in r["forces_n"]])
@@ -146,7 +304,13 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                      f"{', '.join(f'{x:.3f}' for x in np.linalg.norm(forces[sliding, :2], axis=1))} | "
                      f"{max(r['lag_residual_n']):.2g} | "
                      f"{np.max(np.linalg.norm(np.array(r['markers_mm']) - ref_markers, axis=-1)):.4f} | "
-                     f"{sum(r['seconds']):.0f} |")
+                     f"{sum(r['seconds']):.1f} |")
+    lines += [f"| {name} | failed: {why} | | | | | | | |" for name, why in failed.items()]
+    if linear == "gmres" and gmres_iterations:
+        lines += ["", f"GMRES iterations per Newton system of the coupled run: median {int(np.median(gmres_iterations))}, "
+                  f"max {max(gmres_iterations)}, {len(gmres_iterations)} systems; {gmres_unsolved['exact']} not solved with the exact "
+                  f"Hessian within {GMRES_MAXITER[EXACT]} (the clamped one taken), {gmres_unsolved['both']} with neither "
+                  f"(within {GMRES_MAXITER[CLAMPED]})."]
     publish("\n".join(lines), md_out, benchmarks, SECTION)
 
 

@@ -79,11 +79,12 @@ class Physics(_Strict):
         "(0.01: stricter sticking, about 1.5x the Newton iterations)")
     friction_lag_moves: int = Field(
         default=4, ge=1, le=50, description="friction's normal pressure and tangent plane are lagged and moved to "
-        "the current state at most this often per load step: on press_slide and the tiny mesh 4 match a 12-move "
-        "solution's friction forces within 0.5 %; 1 takes a third fewer Newton iterations on press_slide, friction "
-        "within 2 % there but 16 % on a coarse mesh (BENCHMARKS.md fem_friction_lag_moves, fem_friction_lag_moves_gpu). "
-        "Where the lag did not converge, the frame's solver record says how much it leaves unbalanced "
-        "(friction_lag_residual_n, N)")
+        "the current state at most this often per load step: on press_slide 4 match a converged lag's friction forces "
+        "within 0.05 %, 1 takes 0.7-0.75x the Newton iterations with friction within 2 %. A lag cut short can land "
+        "anywhere on its path (the tiny mesh's last slide frame: 35 % off with 4, 81 % with 8, 7 % with 1; converged "
+        "with 16), and where it does not converge more moves can make a frame fail (BENCHMARKS.md "
+        "fem_friction_lag_moves, fem_friction_lag_cap_gpu). The frame's solver record says what the lag leaves "
+        "unbalanced (friction_lag_residual_n, N)")
     linear_solver: Literal["auto", "direct", "cg"] = Field(
         default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
         "auto: cg on a GPU, else direct")
