@@ -81,7 +81,7 @@ class Physics(_Strict):
         default=4, ge=1, le=50, description="friction's normal pressure and tangent plane are lagged and moved to "
         "the current state at most this often per load step: on press_slide 4 match a converged lag's friction forces "
         "within 0.05 %, 1 takes 0.7-0.75x the Newton iterations with friction within 2 %. A lag cut short can land "
-        "anywhere on its path (the tiny mesh's last slide frame: 35 % off with 4, 81 % with 8, 7 % with 1; converged "
+        "anywhere on its path (the tiny mesh's last slide frame: 35 % off with 4, 81 % with 8, 4 % with 1; converged "
         "with 16), and where it does not converge more moves can make a frame fail (BENCHMARKS.md "
         "fem_friction_lag_moves, fem_friction_lag_cap_gpu). The frame's solver record says what the lag leaves "
         "unbalanced (friction_lag_residual_n, N)")
