@@ -1,6 +1,6 @@
 """Study: friction's normal pressure implicit in Newton (no lag loop) against the lagged solver.
 
-    .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--linear lu|gmres]
+    .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--linear lu|gmres|bicgstab]
         [--sequence I] [--trajectory-from SCENE] [--md-out FILE] [--benchmarks]
     python scripts/fem_coupled_friction.py scenes/train_random.toml --sequence 2 --moves 1,4 --linear gmres   (a GPU)
 
@@ -16,8 +16,9 @@ g(u) too, dg/dx = -n, so
 integrated over the contact sides. n's own derivative is left out, here and in the solver's normal term (k g dn/du):
 J is exact on a flat indenter face, not on a curved one such as the default sphere, where its direction need not lower
 the merit. J is not symmetric, so each system is solved by LU (``--linear lu``: SuperLU on the host, a new
-factorisation per iteration: seconds on the tiny mesh) or by GMRES on the solver's device (``--linear gmres``:
-``coupled_newton_gmres``; BENCHMARKS.md ``fem_coupled_friction_gpu``), and the line search backtracks on |gradient|^2
+factorisation per iteration: seconds on the tiny mesh) or by GMRES or BiCGStab on the solver's device (``--linear
+gmres|bicgstab``: ``coupled_newton_krylov``; BENCHMARKS.md ``fem_coupled_friction_gpu``), and the line search backtracks
+on |gradient|^2
 (the exact Newton direction of the coupled problem lowers it; E with a moving lag is no merit function) while keeping
 det F > 0. No stiffness raise, no stall test: a study, not the solver. Its solution is the
 lag's fixed point, so its frames' ``friction_lag_residual_n`` is round-off.
@@ -56,16 +57,18 @@ from transtac_sim.physics.reductions import max_abs, negated_free  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "fem_coupled_friction_cpu"
 MAX_ITERATIONS = 80
-#: ``--linear gmres``: Newton's systems solved to the relative residual min(FORCING_MAX, |g| / |g_first|) (inexact
-#: Newton, as the solver's), at least GMRES_RTOL_MIN, in at most GMRES_MAXITER iterations (restarted every GMRES_RESTART)
+#: ``--linear gmres|bicgstab``: Newton's systems solved to the relative residual min(FORCING_MAX, |g| / |g_first|)
+#: (inexact Newton, as the solver's), at least KRYLOV_RTOL_MIN, in at most KRYLOV_MAXITER iterations (GMRES restarted
+#: every GMRES_RESTART and checked then; BiCGStab checked every BICGSTAB_CHECK)
 FORCING_MAX = 0.01
-GMRES_RTOL_MIN = 1.0e-4  # the device CG's tight tolerance (linear.py ``cg_tol``)
-GMRES_MAXITER = {EXACT: 620, CLAMPED: 3000}  # the exact Hessian's system gives up sooner: the clamped one is next
+KRYLOV_RTOL_MIN = 1.0e-4  # the device CG's tight tolerance (linear.py ``cg_tol``)
+KRYLOV_MAXITER = {EXACT: 620, CLAMPED: 3000}  # the exact Hessian's system gives up sooner: the clamped one is next
 GMRES_RESTART = 62
-#: GMRES iterations per Newton system of the last ``coupled_newton_gmres`` run, and the systems it did not solve to
+BICGSTAB_CHECK = 10
+#: Krylov iterations per Newton system of the last ``coupled_newton_krylov`` run, and the systems it did not solve to
 #: its tolerance with the exact Hessian (then tried with the clamped one) or with either
-gmres_iterations: list[int] = []
-gmres_unsolved = {"exact": 0, "both": 0}
+krylov_iterations: list[int] = []
+krylov_unsolved = {"exact": 0, "both": 0}
 
 
 @fem.integrand
@@ -161,15 +164,17 @@ class TwoLevel(BlockJacobi):
         self._matvec = matvec
 
 
-def coupled_newton_gmres(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = False,
+                          method: str = "gmres") -> tuple[bool, int, str, float]:
     """``coupled_newton`` with every array on the solver's device (a GPU's, where it has one): J = H + J_c assembled
-    there, its fixed rows and columns projected out, and each system solved by Warp's restarted GMRES preconditioned
+    there, its fixed rows and columns projected out, and each system solved by Warp's restarted GMRES or BiCGStab
+    (``method``) preconditioned
     with the device CG's two-level preconditioner (``TwoLevel``; block-Jacobi alone where the solver has no coarse
-    level: the host path), to the inexact-Newton tolerance ``FORCING_MAX`` / ``GMRES_RTOL_MIN`` within
-    ``GMRES_MAXITER``; where that fails J is made with the clamped Hessian (the volumetric term's geometric part
-    clamped, elasticity.py) and solved again, and the last step is taken whether solved or not. GMRES iterations per
-    system go to ``gmres_iterations``."""
-    from warp.optim.linear import gmres
+    level: the host path), to the inexact-Newton tolerance ``FORCING_MAX`` / ``KRYLOV_RTOL_MIN`` within
+    ``KRYLOV_MAXITER``; where that fails J is made with the clamped Hessian (the volumetric term's geometric part
+    clamped, elasticity.py) and solved again, and the last step is taken whether solved or not. Krylov iterations per
+    system go to ``krylov_iterations``."""
+    from warp.optim.linear import bicgstab, gmres
 
     tol, fixed = solver.settings.newton_tol_mm, solver._linear._fixed
     fixed_np = fixed.numpy() > 0.5
@@ -198,31 +203,34 @@ def coupled_newton_gmres(solver: QuasiStaticSolver, ind, may_stall: bool = False
 
     def solve(J, d: wp.array, rtol: float, clamp: int) -> tuple[bool, int]:  # J d = rhs from d: (solved, iterations)
         M = TwoLevel(J, coarse) if coarse is not None and coarse.ready else BlockJacobi(J)
-        its, residual, atol = gmres(J, rhs, d, tol=rtol, maxiter=GMRES_MAXITER[clamp], M=M, restart=GMRES_RESTART,
-                                    check_every=GMRES_RESTART, use_cuda_graph=solver.device.is_cuda)
+        common = {"tol": rtol, "maxiter": KRYLOV_MAXITER[clamp], "M": M, "use_cuda_graph": solver.device.is_cuda}
+        if method == "gmres":
+            its, residual, atol = gmres(J, rhs, d, restart=GMRES_RESTART, check_every=GMRES_RESTART, **common)
+        else:
+            its, residual, atol = bicgstab(J, rhs, d, check_every=BICGSTAB_CHECK, **common)
         return bool(residual <= atol), int(its)
 
     for iteration in range(1, MAX_ITERATIONS + 1):
         J_c = fem.integrate(coupling_form, quadrature=solver._q_contact,
                             fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
                             values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
-        rtol, its = max(min(FORCING_MAX, g_norm / g_first), GMRES_RTOL_MIN), 0
-        for clamp in (EXACT, CLAMPED):  # the clamped Hessian where GMRES does not solve the exact one's system
+        rtol, its = max(min(FORCING_MAX, g_norm / g_first), KRYLOV_RTOL_MIN), 0
+        for clamp in (EXACT, CLAMPED):  # the clamped Hessian where the Krylov method does not solve the exact one's
             J = wp.sparse.bsr_copy(solver._hessian(ind, 1.0, clamp))
             wp.sparse.bsr_axpy(J_c, J)
             project_fixed(J, fixed, fixed_blocks(J, fixed_np))
             d = wp.zeros_like(rhs)
             solved, n = solve(J, d, rtol, clamp)
             step, its = max_abs(d), its + n
-            if solved and step < 100.0 * tol and rtol > GMRES_RTOL_MIN:  # near convergence the step decides: tightly
-                solved, n = solve(J, d, GMRES_RTOL_MIN, clamp)
+            if solved and step < 100.0 * tol and rtol > KRYLOV_RTOL_MIN:  # near convergence the step decides: tightly
+                solved, n = solve(J, d, KRYLOV_RTOL_MIN, clamp)
                 step, its = max_abs(d), its + n
             if solved:
                 break
-            gmres_unsolved["exact" if clamp == EXACT else "both"] += 1
-        gmres_iterations.append(int(its))
+            krylov_unsolved["exact" if clamp == EXACT else "both"] += 1
+        krylov_iterations.append(int(its))
         if not np.isfinite(step):
-            return False, iteration, "GMRES gave a non-finite step", 0.0
+            return False, iteration, f"{method} gave a non-finite step", 0.0
         if step < tol:
             fem.linalg.array_axpy(x=d, y=solver.u.dof_values, alpha=1.0)
             return True, iteration, "", solver._max_penetration(ind)
@@ -246,14 +254,20 @@ def coupled_newton_gmres(solver: QuasiStaticSolver, ind, may_stall: bool = False
     return False, MAX_ITERATIONS, "Newton iteration limit reached", 0.0
 
 
-NEWTONS = {"lu": coupled_newton, "gmres": coupled_newton_gmres}
+def _krylov_newton(method: str):
+    def newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+        return coupled_newton_krylov(solver, ind, may_stall, method)
+    return newton
+
+
+NEWTONS = {"lu": coupled_newton, "gmres": _krylov_newton("gmres"), "bicgstab": _krylov_newton("bicgstab")}
 
 
 def _coupled_run(scene: Path, frames: int, linear: str, sequence: int | None, trajectory_from: Path | None) -> dict:
     lagged = QuasiStaticSolver._newton
     QuasiStaticSolver._newton = NEWTONS[linear]
-    gmres_iterations.clear()
-    gmres_unsolved.update(exact=0, both=0)
+    krylov_iterations.clear()
+    krylov_unsolved.update(exact=0, both=0)
     try:
         return run(scene, 2, frames, trajectory_from, sequence)
     finally:
@@ -262,8 +276,8 @@ def _coupled_run(scene: Path, frames: int, linear: str, sequence: int | None, tr
 
 def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_slide.toml"),
          frames: int = typer.Option(8, min=1), moves: str = typer.Option("4,12", help="the lagged solver's lag moves"),
-         linear: str = typer.Option("lu", help="the coupled Newton's systems: lu (SuperLU on the host) or gmres "
-                                               "(Warp's GMRES on the solver's device)"),
+         linear: str = typer.Option("lu", help="the coupled Newton's systems: lu (SuperLU on the host), gmres or "
+                                               "bicgstab (Warp's, on the solver's device)"),
          sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
          trajectory_from: Path | None = typer.Option(None, help="the indenters' motion from this scene"),
          md_out: Path | None = typer.Option(None, help="also write the table to this file"),
@@ -306,11 +320,11 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                      f"{np.max(np.linalg.norm(np.array(r['markers_mm']) - ref_markers, axis=-1)):.4f} | "
                      f"{sum(r['seconds']):.1f} |")
     lines += [f"| {name} | failed: {why} | | | | | | | |" for name, why in failed.items()]
-    if linear == "gmres" and gmres_iterations:
-        lines += ["", f"GMRES iterations per Newton system of the coupled run: median {int(np.median(gmres_iterations))}, "
-                  f"max {max(gmres_iterations)}, {len(gmres_iterations)} systems; {gmres_unsolved['exact']} not solved with the exact "
-                  f"Hessian within {GMRES_MAXITER[EXACT]} (the clamped one taken), {gmres_unsolved['both']} with neither "
-                  f"(within {GMRES_MAXITER[CLAMPED]})."]
+    if linear != "lu" and krylov_iterations:
+        lines += ["", f"{linear} iterations per Newton system of the coupled run (counted at its checks): median "
+                  f"{int(np.median(krylov_iterations))}, max {max(krylov_iterations)}, {len(krylov_iterations)} systems; "
+                  f"{krylov_unsolved['exact']} not solved with the exact Hessian within {KRYLOV_MAXITER[EXACT]} (the "
+                  f"clamped one taken), {krylov_unsolved['both']} with neither (within {KRYLOV_MAXITER[CLAMPED]})."]
     publish("\n".join(lines), md_out, benchmarks, SECTION)
 
 
