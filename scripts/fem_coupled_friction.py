@@ -89,23 +89,34 @@ def coupling_form(s: fem.Sample, domain: fem.Domain, du: fem.Field, v: fem.Field
     return h
 
 
+def coupling_matrix(solver: QuasiStaticSolver, ind):
+    """J_c (N/mm, a 3x3-block BSR matrix on the solver's device) at the solver's u: ``coupling_form`` over the contact
+    sides."""
+    trial = fem.make_trial(solver._space, domain=solver._sides)
+    test = fem.make_test(solver._space, domain=solver._sides)
+    return fem.integrate(coupling_form, quadrature=solver._q_contact,
+                         fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
+                         values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
+
+
+def gradient_with_lag_at_u(solver: QuasiStaticSolver, ind) -> wp.array:
+    """The gradient (N, all dofs, on the solver's device) at u with friction's lag moved to u first."""
+    wp.copy(solver.u_lag.dof_values, solver.u.dof_values)
+    solver._update_lag(ind)
+    return solver._gradient(ind)
+
+
 def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
     """Newton on the lag-free problem for one load step, in place of ``NewtonSteps._newton`` (same result tuple;
     ``may_stall`` is ignored: no stall test)."""
     free, tol = solver._linear._free, solver.settings.newton_tol_mm
-    trial = fem.make_trial(solver._space, domain=solver._sides)
-    test = fem.make_test(solver._space, domain=solver._sides)
 
-    def gradient_at_u() -> np.ndarray:  # the lag moved to u first
-        wp.copy(solver.u_lag.dof_values, solver.u.dof_values)
-        solver._update_lag(ind)
-        return solver._gradient(ind).numpy().reshape(-1)[free].copy()
+    def gradient_at_u() -> np.ndarray:  # on the free dofs
+        return gradient_with_lag_at_u(solver, ind).numpy().reshape(-1)[free].copy()
 
     g = gradient_at_u()
     for iteration in range(1, MAX_ITERATIONS + 1):
-        J_c = fem.integrate(coupling_form, quadrature=solver._q_contact,
-                            fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
-                            values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
+        J_c = coupling_matrix(solver, ind)
         J = (bsr_to_scipy(solver._hessian(ind, 1.0, EXACT)) + bsr_to_scipy(J_c)).tocsr()[free][:, free].tocsc()
         try:
             d = spla.splu(J).solve(-g)
@@ -178,13 +189,9 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
 
     tol, fixed = solver.settings.newton_tol_mm, solver._linear._fixed
     fixed_np = fixed.numpy() > 0.5
-    trial = fem.make_trial(solver._space, domain=solver._sides)
-    test = fem.make_test(solver._space, domain=solver._sides)
 
-    def gradient_at_u() -> tuple[wp.array, float]:  # -g with the lag moved to u first, and |g| (free dofs)
-        wp.copy(solver.u_lag.dof_values, solver.u.dof_values)
-        solver._update_lag(ind)
-        return negated_free(solver._gradient(ind), solver._fixed_mask)
+    def gradient_at_u() -> tuple[wp.array, float]:  # -g and |g| on the free dofs
+        return negated_free(gradient_with_lag_at_u(solver, ind), solver._fixed_mask)
 
     rhs, g_norm = gradient_at_u()
     g_first = g_norm
@@ -211,9 +218,7 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
         return bool(residual <= atol), int(its)
 
     for iteration in range(1, MAX_ITERATIONS + 1):
-        J_c = fem.integrate(coupling_form, quadrature=solver._q_contact,
-                            fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
-                            values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
+        J_c = coupling_matrix(solver, ind)
         rtol, its = max(min(FORCING_MAX, g_norm / g_first), KRYLOV_RTOL_MIN), 0
         for clamp in (EXACT, CLAMPED):  # the clamped Hessian where the Krylov method does not solve the exact one's
             J = wp.sparse.bsr_copy(solver._hessian(ind, 1.0, clamp))

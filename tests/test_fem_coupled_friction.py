@@ -7,11 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-import warp as wp
-import warp.fem as fem
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-from fem_coupled_friction import NEWTONS, coupled_newton, coupling_form  # noqa: E402
+from fem_coupled_friction import NEWTONS, coupled_newton, coupling_matrix, gradient_with_lag_at_u  # noqa: E402
 
 from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, SolverSettings  # noqa: E402
 from transtac_sim.physics.box_mesh import box_tet_mesh  # noqa: E402
@@ -25,34 +23,33 @@ def _pose(x, z):
     return P
 
 
+def _pressed_plate(settings: SolverSettings) -> QuasiStaticSolver:
+    """A 4 x 4 x 2 mm block under a plate wider than it (friction 0.5), pressed 0.1 mm."""
+    V, T = box_tet_mesh(np.linspace(-2, 2, 5), np.linspace(-2, 2, 5), np.linspace(0, 2, 3))
+    plate = RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)), 0.5)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [plate], settings)
+    solver.start([_pose(0.0, 3.0 + 1e-3)])
+    solver.solve_frame([_pose(0.0, 2.9)])
+    return solver
+
+
 def test_coupling_term_is_the_gradient_s_derivative_through_the_normal_pressure():
     """A plate wider than the block (every top point in contact, one flat face: n does not change with u, so the term
     is the whole of what the lag leaves out) pressed 0.1 mm and slid 0.2 mm with friction 0.5. At the slid state
     G(u) = gradient with the lag moved to u; (H + J_c) d must match (G(u + h d) - G(u - h d)) / 2h, where H alone
     misses the pressure's share of friction."""
-    V, T = box_tet_mesh(np.linspace(-2, 2, 5), np.linspace(-2, 2, 5), np.linspace(0, 2, 3))
-    plate = RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)), 0.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [plate])
-    solver.start([_pose(0.0, 3.0 + 1e-3)])
-    solver.solve_frame([_pose(0.0, 2.9)])
+    solver = _pressed_plate(SolverSettings())
     solver.solve_frame([_pose(0.2, 2.9)])
     ind, free = solver._last_ind, solver._linear._free
 
     def gradient(u: np.ndarray) -> np.ndarray:
         solver.u.dof_values.assign(u.reshape(-1, 3))
-        wp.copy(solver.u_lag.dof_values, solver.u.dof_values)
-        solver._update_lag(ind)
-        return solver._gradient(ind).numpy().reshape(-1)[free].copy()
+        return gradient_with_lag_at_u(solver, ind).numpy().reshape(-1)[free].copy()
 
     u = solver.u.dof_values.numpy().reshape(-1).copy()
     gradient(u)
     H = bsr_to_scipy(solver._hessian(ind, 1.0, EXACT)).tocsr()[free][:, free]
-    trial = fem.make_trial(solver._space, domain=solver._sides)
-    test = fem.make_test(solver._space, domain=solver._sides)
-    J_c = fem.integrate(coupling_form, quadrature=solver._q_contact,
-                        fields={"du": trial, "v": test, "u": solver.u.trace(), "u_prev": solver.u_prev.trace()},
-                        values={"ind": ind, "st": solver._contact_state}, output_dtype=wp.float64)
-    J_c = bsr_to_scipy(J_c).tocsr()[free][:, free]
+    J_c = bsr_to_scipy(coupling_matrix(solver, ind)).tocsr()[free][:, free]
     d = np.random.default_rng(0).standard_normal(len(free))
     h = 1e-6 / np.abs(d).max()  # 1e-6 mm: no point crosses the contact or stick-slip boundary
     step = np.zeros_like(u)
@@ -68,12 +65,7 @@ def test_coupling_term_is_the_gradient_s_derivative_through_the_normal_pressure(
 def _plate_slide(newton=None, linear_solver: str = "auto") -> tuple[np.ndarray, float]:
     """The plate pressed 0.1 mm and slid 0.2 mm with friction 0.5 (the test above), the slide solved by ``newton`` in
     place of the solver's: (the slid displacement (mm), the slide frame's friction_lag_residual_n (N))."""
-    V, T = box_tet_mesh(np.linspace(-2, 2, 5), np.linspace(-2, 2, 5), np.linspace(0, 2, 3))
-    plate = RigidIndenter.from_trimesh("plate", trimesh.creation.box(extents=(40.0, 40.0, 2.0)), 0.5)
-    settings = SolverSettings(friction_lag_moves=1, linear_solver=linear_solver, coarse_cell_mm=1.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [plate], settings)
-    solver.start([_pose(0.0, 3.0 + 1e-3)])
-    solver.solve_frame([_pose(0.0, 2.9)])
+    solver = _pressed_plate(SolverSettings(friction_lag_moves=1, linear_solver=linear_solver, coarse_cell_mm=1.5))
     if newton is not None:
         solver._newton = lambda ind, may_stall=False: newton(solver, ind, may_stall)
     result = solver.solve_frame([_pose(0.2, 2.9)])
