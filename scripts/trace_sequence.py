@@ -9,7 +9,8 @@ runs the sequence as one ``generate`` worker does (physics, render, labels, writ
 in this process. Each load sub-step prints its seconds, Newton iterations, outcome and the frame's counters so far;
 each frame its seconds, Newton iterations, sub-steps, residual (N) and Fz (N); each device CG that stops unconverged
 its reason, and each host solve its seconds; with ``--newton``, each Newton system (which Hessian, its outcome, its
-linear iterations);
+linear iterations) and at the end a table of where each frame's Newton iterations went: before friction's first lag
+move (of which on the clamped or Gauss-Newton Hessian, where the exact one was not positive definite) and after it;
 ``kill -USR1 <pid>`` prints the main thread's Python stack to stderr (``faulthandler``; its periodic dump from a
 watchdog thread crashed this process in libpython twice, so it is not used). The gel mesh comes from the
 mesh cache (``TRANSTAC_SIM_CACHE``): a mesh built anew elsewhere differs, and so do the frames (README, Determinism).
@@ -35,6 +36,26 @@ from transtac_sim.physics.elasticity import CLAMPED, EXACT
 HESSIANS = {(1.0, EXACT): "exact", (1.0, CLAMPED): "clamped", (0.0, CLAMPED): "Gauss-Newton"}
 
 
+def _new_frame_counts() -> dict:
+    return {"steps": 0, "before_lag": 0, "clamped_before_lag": 0, "after_lag": 0, "lag_moves": 0}
+
+
+#: Newton steps per frame (``--newton``): the frames done, then the one being solved
+ANATOMY: list[dict] = [_new_frame_counts()]
+
+
+def anatomy_table(frames: list[dict]) -> str:
+    """Markdown table of ``ANATOMY``'s finished frames, with the sums over frames 1 on (frame 0 is the first touch)."""
+    keys = ("steps", "before_lag", "clamped_before_lag", "after_lag", "lag_moves")
+    rows = ["| frame | Newton steps | before friction's first lag move | of those, clamped or Gauss-Newton Hessian "
+            "| after it | lag moves |", "|---|---|---|---|---|---|"]
+    rows += [f"| {k} | " + " | ".join(str(f[key]) for key in keys) + " |" for k, f in enumerate(frames)]
+    if len(frames) > 1:
+        rows.append(f"| 1-{len(frames) - 1} | " + " | ".join(str(sum(f[key] for f in frames[1:])) for key in keys)
+                    + " |")
+    return "\n".join(rows)
+
+
 def _trace_newton() -> None:
     """Prints each Newton system as it is solved: which Hessian (newton.py ``_hessian_ladder``), what came of it (a
     step, not positive definite, or a shifted step) and the linear iterations it took."""
@@ -50,6 +71,14 @@ def _trace_newton() -> None:
         outcome = "not positive definite" if du is None else (f"shifted {self.last_shift:g}" if self.last_shift
                                                                  else "step")
         step = f", max |du| {float(np.max(np.abs(du.numpy()))):.2e} mm" if du is not None else ""
+        if du is not None:
+            counts = ANATOMY[-1]
+            counts["steps"] += 1
+            if counts["lag_moves"] == 0:
+                counts["before_lag"] += 1
+                counts["clamped_before_lag"] += last.get("which") != "exact"
+            else:
+                counts["after_lag"] += 1
         print(f"    Newton system, {last.get('which')} Hessian: {outcome}{step}, |g| {np.linalg.norm(rhs.numpy()):.2e} N, "
               f"{self.last_iterations} linear iterations, rtol {kwargs.get('rtol', 0.0):.1e}", flush=True)
         return du
@@ -59,6 +88,7 @@ def _trace_newton() -> None:
     def logged_move_lag(self, ind, remaining):
         moved = move_lag(self, ind, remaining)
         if moved:
+            ANATOMY[-1]["lag_moves"] += 1
             print(f"    friction's lag moved (estimated remaining step {remaining:.2e} mm)", flush=True)
         return moved
 
@@ -87,6 +117,7 @@ def _trace_solver() -> None:
         print(f"frame {self.frame_index - 1}: {time.perf_counter() - t0:.1f} s, {r.iterations} Newton iterations, "
               f"{r.substeps} sub-step(s), residual {r.residual:.2e} N, Fz {result.forces_n[0][2]:.4f} N, "
               f"{self._linear.shifted_solves} shifted device solves so far", flush=True)
+        ANATOMY.append(_new_frame_counts())
         return result
 
     def logged_step(self, poses, *args, **kwargs):
@@ -120,7 +151,9 @@ def _trace_solver() -> None:
 def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = typer.Option(3, min=1),
          mode: str = typer.Option("physics", help="physics or worker"),
          linear_solver: str = typer.Option("auto", help="auto, direct or cg"),
-         newton: bool = typer.Option(False, help="also print each Newton system: its Hessian and outcome")) -> None:
+         newton: bool = typer.Option(False, help="also print each Newton system (its Hessian and outcome), and at the "
+                                     "end where each frame's Newton steps went"),
+         friction_lag_moves: int | None = typer.Option(None, min=1, help="replace [physics] friction_lag_moves")) -> None:
     if mode not in ("physics", "worker"):
         raise typer.BadParameter(f"--mode must be physics or worker, got {mode!r}")
     faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=False)
@@ -129,7 +162,10 @@ def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = type
         _trace_newton()
     path = scene.resolve()
     loaded = load_scene(path)
-    loaded = loaded.model_copy(update={"physics": loaded.physics.model_copy(update={"linear_solver": linear_solver})})
+    physics = {"linear_solver": linear_solver}
+    if friction_lag_moves is not None:
+        physics["friction_lag_moves"] = friction_lag_moves
+    loaded = loaded.model_copy(update={"physics": loaded.physics.model_copy(update=physics)})
     if mode == "physics":
         from transtac_sim.dataset.sequence import StageClock, sequence_setup
         from transtac_sim.simulation import simulate_frames
@@ -137,6 +173,8 @@ def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = type
         setup, _ = sequence_setup(loaded, path, sequence)
         for _ in simulate_frames(setup, frames, StageClock()):
             pass
+        if newton:
+            print(anatomy_table(ANATOMY[:-1]))
         return
     from transtac_sim.dataset.generate import SequenceTask, _run_task
     from transtac_sim.scene_setup import build_setup
