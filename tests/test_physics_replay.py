@@ -63,3 +63,18 @@ def test_a_key_is_captured_on_its_second_use_and_replayed_after(monkeypatch):
     cache.clear()
     gc.collect()
     assert alive() is None
+
+
+def test_clear_by_name_drops_only_those_keys():
+    cache = GraphCache("cpu")
+    cache.device = SimpleNamespace(is_cuda=True)
+    subset, other, launched = _Subset(), _Subset(), []
+    alive, kept = weakref.ref(subset), weakref.ref(other)
+    cache.run(("hessian", id(subset)), (subset,), lambda: launched.append("hessian"))
+    cache.run(("energy", id(other)), (other,), lambda: launched.append("energy"))
+    del subset, other
+    cache.clear("hessian")
+    gc.collect()
+    assert alive() is None and kept() is not None  # the Hessian's key is gone, the energy's is still known
+    cache.run(("hessian", 1), (), lambda: launched.append("hessian"))
+    assert launched == ["hessian", "energy", "hessian"]

@@ -49,6 +49,14 @@ def _pressed_solver(degree: int = 2, device: str = "cpu"):
     return solver, ind
 
 
+def _next_step(solver):
+    """The indenter struct of a load step that presses ``_pressed_solver``'s sphere 0.02 mm further (from its pose)."""
+    P = solver.poses[0]
+    Q = P.copy()
+    Q[2, 3] -= 0.02
+    return solver._indenter_struct([Q], [P])
+
+
 def _pressed_hessian(device: str = "cpu"):
     """The summed Newton Hessian (elastic, barrier where it acts, contact with friction) of ``_pressed_solver``, as
     the device CG receives it."""
@@ -206,10 +214,10 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_replayed_energy_and_min_det_read_the_current_values(device):
-    """``_energy`` and ``_min_det`` replay CUDA graphs (replay.py): a replay reads the field's current values and the
-    contact state changed in place (friction's lag moved), a stiffness change or a new indenter struct makes a new
-    graph, and every value equals the one launched without a graph. On the CPU there are no graphs: its case checks
-    the launch path only; the replay is checked by the CUDA case."""
+    """``_energy`` and ``_min_det`` replay CUDA graphs (replay.py): a replay reads the field's current values, the
+    contact state changed in place (friction's lag moved) and a new load step's poses (written into the solver's one
+    indenter struct), a stiffness change makes a new graph, and every value equals the one launched without a graph.
+    On the CPU there are no graphs: its case checks the launch path only; the replay is checked by the CUDA case."""
     solver, ind = _pressed_solver(device=device)
     u0 = solver.u.dof_values.numpy()
 
@@ -232,22 +240,27 @@ def test_replayed_energy_and_min_det_read_the_current_values(device):
     solver._update_lag(ind)
     got.append((solver._energy(solver._u_try, ind), solver._min_det(solver._u_try)))  # replayed
     expected.append(launched(solver._u_try, ind))
-    fresh = solver._indenter_struct(solver._poses, solver._poses)  # a new struct: a new key
-    fresh.stiffness = ind.stiffness
-    for _ in range(3):  # launched, captured, replayed
-        got.append((solver._energy(solver._u_try, fresh), solver._min_det(solver._u_try)))
-        expected.append(launched(solver._u_try, fresh))
+    ind.stiffness = solver.contact_stiffness  # the first stiffness again: replayed
+    got.append((solver._energy(solver._u_try, ind), solver._min_det(solver._u_try)))
+    expected.append(launched(solver._u_try, ind))
+    captured = solver._graphs.captures
+    step = _next_step(solver)  # the next load step: its poses written into the same struct
+    assert step is ind
+    for _ in range(2):
+        got.append((solver._energy(solver._u_try, step), solver._min_det(solver._u_try)))  # replayed
+        expected.append(launched(solver._u_try, step))
     np.testing.assert_allclose(got, expected, rtol=1e-12)
     assert len({e for e, _ in got[:8]}) == 8  # every state gave its own energy
     assert got[8][0] != got[7][0]  # the moved lag changed the friction energy, and the replay saw it
-    if solver.device.is_cuda:  # energy and det F once each, the energy again for the new stiffness and struct
-        assert solver._graphs.captures - before == 4
+    assert got[10][0] != got[9][0]  # so did the indenter's new pose
+    if solver.device.is_cuda:  # energy and det F once each, the energy again for the new stiffness; not the new poses
+        assert solver._graphs.captures - before == 3 and solver._graphs.captures == captured
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_replayed_gradient_and_hessian_read_the_current_values(device):
     """``_gradient`` and ``_hessian`` replay CUDA graphs (replay.py): a replay reads the field's current values, the
-    contact state its gradient stores and friction's lag moved in place; a stiffness change or a new indenter struct
+    contact state its gradient stores, friction's lag moved in place and a new load step's poses; a stiffness change
     makes new graphs; the gradient, the barrier flag and both Hessians (exact and clamped) equal those launched without
     a graph (the same methods with a graph cache that only launches). The CPU case checks the launch path only."""
     solver, ind = _pressed_solver(device=device)
@@ -281,11 +294,14 @@ def test_replayed_gradient_and_hessian_read_the_current_values(device):
     solver._update_lag(ind)
     got.append(evaluate(ind))
     expected.append(launched(ind))
-    fresh = solver._indenter_struct(solver._poses, solver._poses)  # a new struct: new keys
-    fresh.stiffness = ind.stiffness
-    for _ in range(3):
-        got.append(evaluate(fresh))
-        expected.append(launched(fresh))
+    ind.stiffness = stiffness
+    got.append(evaluate(ind))  # the first stiffness's graphs again
+    expected.append(launched(ind))
+    captured = replaying.captures
+    step = _next_step(solver)  # the next load step's poses, in the same struct
+    for _ in range(2):
+        got.append(evaluate(step))
+        expected.append(launched(step))
     for (g, acts, H), (g_ref, acts_ref, H_ref) in zip(got, expected, strict=True):
         np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-12 * np.abs(g_ref).max())
         assert acts == acts_ref
@@ -293,9 +309,10 @@ def test_replayed_gradient_and_hessian_read_the_current_values(device):
             np.testing.assert_allclose(A, A_ref, rtol=0, atol=1e-12 * np.abs(A_ref).max())
     norms = [float(np.abs(g).sum()) for g, _, _ in got]
     assert len(set(norms[:8])) == 8 and norms[8] != norms[7]  # every state, and the moved lag, changed the gradient
+    assert norms[10] != norms[9]  # so did the new pose
     assert not np.array_equal(got[0][2][0], got[0][2][1])  # the clamp acts somewhere: two Hessians
-    if solver.device.is_cuda:  # at least the gradient and both Hessians for each of the 3 keys (stiffness, struct)
-        assert replaying.captures - before >= 9
+    if solver.device.is_cuda:  # the gradient and both Hessians for each stiffness; none for the new poses
+        assert replaying.captures - before >= 6 and replaying.captures == captured
 
 
 @fem.integrand
@@ -385,7 +402,7 @@ def test_contact_outside_the_indenters_box_makes_no_query():
     """contact.py skips the mesh query where a point lies outside the indenter's local bounding box: the contact
     energy, gradient and largest penetration equal those with a box that contains every point (the query everywhere)."""
     solver, ind = _pressed_solver()
-    everywhere = solver._indenter_struct([solver.poses[0]], [solver.poses[0]])
+    everywhere = solver._indenter_struct([solver.poses[0]], [solver.poses[0]], role="everywhere")  # another struct
     everywhere.box_lo = wp.array([[-1e9, -1e9, -1e9]], dtype=wp.vec3d)
     everywhere.box_hi = wp.array([[1e9, 1e9, 1e9]], dtype=wp.vec3d)
     lo, hi = ind.box_lo.numpy()[0], ind.box_hi.numpy()[0]

@@ -250,6 +250,7 @@ class Assembly:
         if self._contact_sides.update(stiff.numpy().astype(bool)):
             self._H_parts.pop("contact", None)
             self._H_slots.pop("contact", None)
+            self._graphs.clear("hessian")  # they integrate over the old subset, into its matrix
         subset = self._contact_sides.current
         return None if subset.quadrature is None else subset  # None: nothing touches
 

@@ -262,6 +262,7 @@ class NewtonSteps:
             return pen
         self.contact_stiffness *= min(10.0, 1.5 * pen / self.settings.penetration_tol_mm)
         ind.stiffness = self.contact_stiffness
+        self._graphs.clear()  # their keys hold the old stiffness: none is replayed again
         self._linear.forget()
         self.stats["stiffness_raises"] += 1
         return None
@@ -341,13 +342,12 @@ class NewtonSteps:
     def _solve_step(self, poses, prev_poses, may_stall: bool = False) -> tuple[bool, int, str, float]:
         """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result
         (``may_stall``: see there)."""
-        ind = self._indenter_struct(poses, prev_poses)
-        self._graphs.clear()  # the graphs of the last load step baked its indenter struct in
+        ind = self._indenter_struct(poses, prev_poses)  # the same struct every step: its graphs are replayed
         self._linear.new_load_step()
         wp.copy(self.u_lag.dof_values, self.u_prev.dof_values)
         # first lag: the contact of the last converged state, where it was (with the previous poses), or that of
         # the warm start if its contact is about as deep (on a slide it is where the contact has moved to)
-        self._update_lag(self._indenter_struct(prev_poses, prev_poses))
+        self._update_lag(self._indenter_struct(prev_poses, prev_poses, role="lag"))
         step = self._pose_step(prev_poses, poses)
         if self._warm_start(ind, step):
             wp.copy(self.u_lag.dof_values, self.u.dof_values)

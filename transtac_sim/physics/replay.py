@@ -5,18 +5,22 @@ The energy at a trial displacement (the line search's test), the smallest det F,
 evaluated many times per load step with the same arrays: ``GraphCache.run`` launches the sequence the first time (which
 also loads its kernels and makes any buffer or matrix it keeps), captures it the second time it sees the same key and
 replays the graph from then on. A key names what a graph bakes in and can change: the displacement field's address and
-the values passed by value (the indenters' struct, whose poses change each load step, their contact stiffness, raised
-inside Newton, and for the Hessian its (geometric, clamp) pair, the barrier flag and the contact side subset, whose
+the values passed by value (the indenters' struct, their contact stiffness, raised inside Newton, and for the Hessian its (geometric, clamp) pair, the barrier flag and the contact side subset, whose
 matrix is made anew with it); the objects in ``keep`` are held from a key's first launch on, so that an address in a key
 is not reused by another object while the key is known: held only once captured, a contact side subset replaced after
 one launch was freed, the next one was made at its address and captured on its first use, and its new matrix was made
 inside the capture, which Warp refuses (press_slide with ``contact_edge_mm = 0.5`` on an H100). Every other array a
-graph reads (u_prev, the contact state, the material parameters, the sums and matrices it writes) must be made once for
-the solver and only changed in place, as solver.py and assembly.py do: a replay reads their current values. ``clear``
-drops every graph (the solver calls it at each load step, whose indenter struct is new). On the CPU (no graphs) the
-sequence is launched every time. press_slide on an H100: the energy 1.11-1.14 -> 0.69 ms per evaluation, det F 0.30-0.31
--> 0.14 ms, the frames 0.95x (BENCHMARKS.md ``fem_graph_replay_gpu``); then on an H200 the gradient 1.6 -> 0.9 ms, the
-Hessian 2.0 -> 1.4-1.5 ms, the frames 0.90-0.93x (``fem_gradient_hessian_replay_gpu``).
+graph reads (u_prev, the contact state, the material parameters, the sums and matrices it writes, the indenters' pose
+arrays) must be made once for the solver and only changed in place, as solver.py and assembly.py do: a replay reads
+their current values. The indenter struct is one per solver (solver.py ``_indenter_struct`` writes each load step's
+poses into it), so a graph serves every load step; before, each step made a new struct and dropped every graph, and
+each step's first evaluations were launched and captured anew. ``clear`` drops graphs that can no longer be replayed:
+the Hessian's when its contact side subset is made anew, every graph when the contact stiffness is raised. On the CPU
+(no graphs) the sequence is launched every time. press_slide on an H100: the energy 1.11-1.14 -> 0.69 ms per
+evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md ``fem_graph_replay_gpu``); then on an H200 the
+gradient 1.6 -> 0.9 ms, the Hessian 2.0 -> 1.4-1.5 ms, the frames 0.90-0.93x (``fem_gradient_hessian_replay_gpu``); kept
+across load steps, on an H100, the energy 0.34 -> 0.24 ms, the gradient 0.57 -> 0.46 ms, the frames within the runs'
+noise (``fem_kept_graphs_across_steps_gpu``).
 """
 
 from __future__ import annotations
@@ -55,6 +59,8 @@ class GraphCache:
         self.captures += 1
         wp.capture_launch(capture.graph)
 
-    def clear(self) -> None:
-        self._graphs.clear()
-        self._seen.clear()
+    def clear(self, name: str | None = None) -> None:
+        """Drops every graph, or those whose key starts with ``name``."""
+        for table in (self._graphs, self._seen):
+            for key in [k for k in table if name is None or k[0] == name]:
+                del table[key]

@@ -133,6 +133,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
         self.contact_stiffness = settings.contact_stiffness or self._default_contact_stiffness()
         self._meshes = [ind.warp_mesh(self.device) for ind in self.indenters]
         self._normals: dict[tuple, tuple[wp.array, wp.array]] = {}  # ``_feature_normals`` by indenters chosen
+        self._structs: dict[tuple, indenter_query.Indenters] = {}  # ``_indenter_struct`` by (role, indenters chosen)
         self._poses: list[np.ndarray] | None = None
         self._barrier_acts = False  # some det F below the barrier's threshold at the last ``_gradient``'s u
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
@@ -228,17 +229,32 @@ class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
                 wp.array(np.cumsum([0] + [7 * len(n) for n in normals[:-1]]), dtype=int, device=self.device))
         return self._normals[which]
 
-    def _indenter_struct(self, poses, prev_poses, which: list[int] | None = None) -> indenter_query.Indenters:
-        """The indenters ``which`` (default all) at ``poses``, having moved from ``prev_poses`` (one each)."""
+    def _indenter_struct(self, poses, prev_poses, which: list[int] | None = None,
+                         role: str = "step") -> indenter_query.Indenters:
+        """The indenters ``which`` (default all) at ``poses``, having moved from ``prev_poses`` (one each), with the
+        current contact stiffness. One struct per ``role`` and choice of indenters is kept for the solver's life and
+        its pose arrays are written in place: the CUDA graphs that bake the struct in (replay.py) then replay the
+        next load step with its poses instead of being captured anew. Newton's load step has the role "step", the
+        step's first friction lag at the previous poses "lag", ``start``'s check of each indenter "probe"; a struct
+        handed out earlier for the same role takes the new poses too."""
         which = list(range(len(self.indenters))) if which is None else which
+        key = (role, tuple(which))
+        s = self._structs.get(key)
+        if s is None:
+            s = self._structs[key] = self._new_indenter_struct(which)
+        s.pose.assign(np.stack(poses))
+        s.pose_inv.assign(np.stack([np.linalg.inv(P) for P in poses]))
+        s.relative.assign(np.stack([P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses, strict=True)]))
+        s.stiffness = self.contact_stiffness
+        return s
+
+    def _new_indenter_struct(self, which: list[int]) -> indenter_query.Indenters:
+        """``_indenter_struct``'s struct for the indenters ``which``, without poses."""
         chosen = [self.indenters[i] for i in which]
         s = indenter_query.Indenters()
         dev = self.device
         s.mesh = wp.array([self._meshes[i].id for i in which], dtype=wp.uint64, device=dev)
-        s.pose = wp.array(np.stack(poses), dtype=wp.mat44d, device=dev)
-        s.pose_inv = wp.array(np.stack([np.linalg.inv(P) for P in poses]), dtype=wp.mat44d, device=dev)
-        rel = [P @ np.linalg.inv(Q) for P, Q in zip(poses, prev_poses, strict=False)]
-        s.relative = wp.array(np.stack(rel), dtype=wp.mat44d, device=dev)
+        s.pose, s.pose_inv, s.relative = (wp.empty(len(which), dtype=wp.mat44d, device=dev) for _ in range(3))
         s.max_dist = wp.array([2.0 * i.bounding_radius_mm + 1.0 for i in chosen], dtype=wp.float64, device=dev)
         pad = [1.0e-6 * (1.0 + i.bounding_radius_mm) for i in chosen]  # float32 vertices: a box a little larger
         s.box_lo = wp.array([i.vertices_mm.min(axis=0) - d for i, d in zip(chosen, pad, strict=True)],
@@ -248,7 +264,6 @@ class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
         s.normals, s.normals_start = self._feature_normals(tuple(which))
         s.friction = wp.array([i.friction for i in chosen], dtype=wp.float64, device=dev)
         s.count = len(chosen)
-        s.stiffness = self.contact_stiffness
         s.slip_eps = self.settings.slip_eps_mm
         return s
 
@@ -261,7 +276,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
         self.u_lag.dof_values.zero_()
         self._contact_state.stick_next.zero_()
         for i in range(len(poses)):
-            depth = self._max_penetration(self._indenter_struct([poses[i]], [poses[i]], which=[i]))
+            depth = self._max_penetration(self._indenter_struct([poses[i]], [poses[i]], which=[i], role="probe"))
             if depth > self.settings.penetration_tol_mm:
                 raise IndenterStartsInsideGel(
                     f"indenter {self.indenters[i].name!r} starts {depth:.4g} mm inside the undeformed gel "
