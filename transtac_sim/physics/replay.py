@@ -5,8 +5,9 @@ The energy at a trial displacement (the line search's test), the smallest det F,
 evaluated many times per load step with the same arrays: ``GraphCache.run`` launches the sequence the first time (which
 also loads its kernels and makes any buffer or matrix it keeps), captures it the second time it sees the same key and
 replays the graph from then on. A key names what a graph bakes in and can change: the displacement field's address and
-the values passed by value (the indenters' struct, their contact stiffness, raised inside Newton, and for the Hessian its (geometric, clamp) pair, the barrier flag and the contact side subset, whose
-matrix is made anew with it); the objects in ``keep`` are held from a key's first launch on, so that an address in a key
+the values passed by value (the indenters' struct, their contact stiffness, raised inside Newton, and for the Hessian
+its (geometric, clamp) pair, the barrier flag and the contact side subset, whose matrix is made anew with it); the
+objects in ``keep`` are held from a key's first launch on, so that an address in a key
 is not reused by another object while the key is known: held only once captured, a contact side subset replaced after
 one launch was freed, the next one was made at its address and captured on its first use, and its new matrix was made
 inside the capture, which Warp refuses (press_slide with ``contact_edge_mm = 0.5`` on an H100). Every other array a
