@@ -21,7 +21,7 @@ import torch
 import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmarks_md import machine_name, update_section  # noqa: E402
+from benchmarks_md import machine_name, publish  # noqa: E402
 
 from transtac_sim.perception.detection.blob import detect_blobs  # noqa: E402
 from transtac_sim.perception.detection.model_file import DEFAULT_MODEL  # noqa: E402
@@ -78,11 +78,7 @@ def main(device: str = typer.Option("cpu"), pairs: int = typer.Option(20, min=1)
     md = (f"`python scripts/bench_detection_speed.py --device {device}` on {where} (torch {torch.__version__}{load}), "
           f"{time.strftime('%Y-%m-%d')}: {len(data)} stereo pairs of 640x480 UV images x {repeats}, medians.\n\n"
           "| detector | ms per stereo pair | stereo pairs per second | split (ms) |\n| --- | --- | --- | --- |\n" + "\n".join(rows))
-    print(md)
-    if md_out:
-        md_out.write_text(md)
-    if write:
-        update_section(REPO / "BENCHMARKS.md", f"detection_speed_{'cpu' if device == 'cpu' else 'gpu'}", md)
+    publish(md, md_out, write, f"detection_speed_{'cpu' if device == 'cpu' else 'gpu'}")
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ from pathlib import Path
 import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmarks_md import machine_name, update_section  # noqa: E402
+from benchmarks_md import machine_name, publish  # noqa: E402
 
 from transtac_sim.dataset.generate import generate  # noqa: E402
 
@@ -108,11 +108,7 @@ def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
     if causes:
         md += "\n\nFailed frames (each stops the rest of its sequence, which is recorded as not simulated):\n\n" + "\n".join(
             f"- {f['sequence']}/{f['frame']:06d}: {f.get('reason', '')}" for f in causes)
-    print(md)
-    if md_out:
-        md_out.write_text(md + "\n")
-    if write:
-        update_section(REPO / "BENCHMARKS.md", section, md)
+    publish(md, md_out, write, section)
 
 
 #: batch sizes of the lockstep estimate in ``solver_summary``
