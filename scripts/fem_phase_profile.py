@@ -56,11 +56,12 @@ from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
 from transtac_sim.physics.linear import LinearSolver
+from transtac_sim.physics.reductions import max_abs
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
 PHASES = {
-    QuasiStaticSolver: ("_gradient", "_energy", "_hessian", "_min_det", "_max_penetration", "_update_lag",
+    QuasiStaticSolver: ("_gradient", "_energy", "_energy_and_min_det", "_hessian", "_min_det", "_max_penetration", "_update_lag",
                         "_move_lag", "_warm_start", "_carried", "_indenter_struct"),
     CoarseSpace: ("update",),  # the coarse level's Galerkin operator and its inverse (coarse_space.py)
     LinearSolver: ("solve", "solve_last", "_cg"),  # solve / solve_last exclusive of _cg: the set-up (sums, projection,
@@ -176,7 +177,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = PhaseClock()
     originals = [] if gpu_activity else [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items()
-                                         for name in names]
+                                         for name in names if hasattr(cls, name)]  # (an older tree may lack some)
     activity: list = []
     failures = []
     solve_step = QuasiStaticSolver._solve_step
@@ -250,7 +251,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
 def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None):
     """``definite_cg``'s interface on Warp's ``cg`` (which never reports an indefinite matrix)."""
     iterations, err, tol = cg(A, b, x, tol=rtol, atol=atol, maxiter=maxiter, M=M, check_every=25)
-    return CgResult(float(err) <= float(tol), False, int(iterations))
+    return CgResult(float(err) <= float(tol), False, int(iterations), max_abs(x))
 
 
 def print_gpu_activity(results: list, wall_s: float) -> None:

@@ -62,6 +62,14 @@ class DeviatoricTerm(NamedTuple):
     c: wp.array  # int mu I : grad v, its gradient at u = 0 (vec3d per node)
     product: object  # H's matrix-vector product (sparse_product.py)
     work: wp.array  # a buffer like c
+    keys: np.ndarray  # row * ncol + column of each of H's blocks, in storage order: the sum's sparsity (``_sum_slots``)
+
+
+def _block_keys(M: BsrMatrix) -> np.ndarray:
+    """row * ncol + column of each block of M, in storage order (read back from M's device)."""
+    offsets = M.offsets.numpy()
+    rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(offsets))
+    return rows * M.ncol + M.columns.numpy()[:offsets[-1]]
 
 
 class Assembly:
@@ -126,16 +134,29 @@ class Assembly:
                 c = fem.integrate(elasticity.deviatoric_gradient_form, quadrature=self._q_dev,
                                   fields={"u": self._space.make_field(), "v": self._test}, values=vals,
                                   output_dtype=wp.vec3d)
-            self._dev = DeviatoricTerm(H, c, block_row_operator(H), wp.empty_like(c))
+            self._dev = DeviatoricTerm(H, c, block_row_operator(H), wp.empty_like(c), _block_keys(H))
         return self._dev
 
     def _energy(self, u, ind) -> float:
         """E(u) (N mm): each term added into one device scalar (``self._energy_sum``), read once; on a GPU the
         launches are replayed as a CUDA graph per displacement field, indenter struct and contact stiffness
         (replay.py)."""
+        self._launch_energy(u, ind)
+        return float(self._energy_sum.numpy()[0])
+
+    def _launch_energy(self, u, ind) -> None:
         key = ("energy", u.dof_values.ptr, id(ind), float(ind.stiffness))
         self._graphs.run(key, (u, ind), lambda: self._energy_terms(u, ind))
-        return float(self._energy_sum.numpy()[0])
+
+    def _energy_and_min_det(self, u, ind) -> tuple[float, float | None]:
+        """(E(u), the smallest det F at u) for the line search's trial u: on a GPU both are launched before either is
+        read, so that the host waits once (most trials are taken, and the det F then decides); on the CPU, where a
+        read costs no wait, the det F is None (``_min_det`` where it is needed)."""
+        if not self.device.is_cuda:
+            return self._energy(u, ind), None
+        self._launch_energy(u, ind)
+        self._launch_min_det(u)
+        return float(self._energy_sum.numpy()[0]), read_extremes(self._det_work[1])[0]
 
     def _energy_terms(self, u, ind) -> None:
         """E(u)'s terms summed into ``self._energy_sum`` (launches only)."""
@@ -277,12 +298,7 @@ class Assembly:
         part's sparsity, which is the sum's."""
         slots = self._H_slots.get(name)
         if slots is None:
-            def keys(M: BsrMatrix) -> np.ndarray:  # row * ncol + column of each block, in storage order
-                offsets = M.offsets.numpy()
-                rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(offsets))
-                return rows * M.ncol + M.columns.numpy()[:offsets[-1]]
-
-            into, own = keys(self._deviatoric().H), keys(part)
+            into, own = self._deviatoric().keys, _block_keys(part)  # the sum's kept: read back once, not per subset
             index = np.searchsorted(into, own)  # a BSR matrix's blocks are sorted by row, then column
             if np.any(index >= len(into)) or np.any(into[np.minimum(index, len(into) - 1)] != own):
                 raise RuntimeError(f"the {name} Hessian has a block outside the elements' sparsity")
@@ -296,6 +312,10 @@ class Assembly:
     def _min_det(self, u) -> float:
         """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN); replayed as a CUDA
         graph per displacement field on a GPU (replay.py)."""
+        self._launch_min_det(u)
+        return read_extremes(self._det_work[1])[0]
+
+    def _launch_min_det(self, u) -> None:
         J, out = self._det_work
 
         def launches():
@@ -303,7 +323,6 @@ class Assembly:
             launch_extremes(J, out)
 
         self._graphs.run(("min_det", u.dof_values.ptr), (u,), launches)
-        return read_extremes(out)[0]
 
     def _max_penetration(self, ind) -> float:
         """The largest penetration (mm) at the contact quadrature points."""

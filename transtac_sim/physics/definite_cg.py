@@ -16,9 +16,11 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
 
 M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a coarse correction on
 rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the device like
-``warp.optim.linear.cg``: one iteration's kernels are captured in a CUDA graph, and with conditional CUDA graphs
-(CUDA 12.4+) the loop itself is captured too (``wp.capture_while``), so the host waits only for the end;
-otherwise the captured iteration is launched ``CHECK_EVERY`` times between host reads. An iteration is five
+``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the start
+(r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
+(``wp.capture_while``) and max |x| at the end (``_largest_entry``), so the host reads the state once, at the end, and
+writes only the solve's tolerances and cap before it (``_set_limits``); otherwise one iteration is captured and
+launched ``CHECK_EVERY`` times between host reads. An iteration is five
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
 entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
 the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
@@ -28,18 +30,19 @@ iterations after its stop: on press_slide's Newton system (H100) 4 iterations a 
 (BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums
 added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
-A ``CgWorkspace`` keeps the work vectors, the state and the last captured graph between solves of one size (a solver's
-Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``, the preconditioner
-and x) launches that solve's graph instead of capturing and instantiating its own (press_slide on an H100: one graph
-for all its frames, 0.87x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``). The state is cleared
-at the start of every solve.
+A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last captured graph between solves
+of one size (a solver's Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``,
+the preconditioner and x) launches that solve's graph instead of capturing and instantiating its own (press_slide on an
+H100: one graph for all its frames, 0.87x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``). The state
+is cleared at the start of every solve. Before the start moved into the graph, a solve read the state twice, and the
+GPU waited between the two reads while the host wrote the state of the first iteration and launched the loop
+(scripts/fem_host_census.py; BENCHMARKS.md ``fem_host_census_gpu``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
@@ -52,8 +55,9 @@ UNROLL = 4  # iterations per pass of the conditional graph's loop (CUDA)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
 
-# the state array's slots
-RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE, MAXITER = (wp.constant(k) for k in range(9))
+# the state array's slots (X_MAX, X_NANS: max |x| over entries and components at the end, and the entries with a NaN)
+RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE, MAXITER, X_MAX, X_NANS = (wp.constant(k) for k in range(11))
+STATE_SIZE = 11
 # why it stopped (the STOP slot)
 _STOPS = (1.0, 2.0, 3.0, 4.0)
 CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in _STOPS)
@@ -64,6 +68,7 @@ class CgResult:
     converged: bool
     not_definite: bool  # stopped at p . A p <= 0 (or r . M r <= 0): the matrix (or M) is not positive definite
     iterations: int
+    x_max: float  # max |x| over its entries and components at the end (NaN where an entry is NaN)
 
 
 @wp.kernel(enable_backward=False)
@@ -168,6 +173,55 @@ def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: w
 
 
 @wp.kernel(enable_backward=False)
+def _set_limits(limits: wp.array(dtype=wp.float64), rtol2: wp.float64, atol2: wp.float64, maxiter: wp.float64):
+    """A solve's rtol^2, atol^2 and iteration cap, written outside its graph (the graph reads them from here)."""
+    limits[0] = rtol2
+    limits[1] = atol2
+    limits[2] = maxiter
+
+
+@wp.kernel(enable_backward=False)
+def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
+    """After the set-up's sums (|r|^2 -> RR, r . z -> RZ_NEW, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2, atol^2),
+    the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the state of
+    the first iteration."""
+    tol2 = wp.max(limits[0] * state[TOL2], limits[1])
+    rz = state[RZ_NEW]
+    rr = state[RR]
+    for k in range(STATE_SIZE):
+        state[k] = wp.float64(0.0)
+    state[TOL2] = tol2
+    state[MAXITER] = limits[2]
+    if rr <= tol2:
+        state[STOP] = CONVERGED
+    elif not rz > wp.float64(0.0):
+        state[STOP] = PRECONDITIONER_NOT_DEFINITE
+    else:
+        state[RZ] = rz
+        state[ACTIVE] = wp.float64(1.0)
+    condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
+
+
+@wp.kernel(enable_backward=False)
+def _largest_entry(x: wp.array(dtype=wp.vec3d), state: wp.array(dtype=wp.float64)):
+    """max |x| over entries and components -> X_MAX, the entries with a NaN -> X_NANS (one thread block)."""
+    _, lane = wp.tid()
+    largest = wp.float64(0.0)
+    nans = wp.float64(0.0)
+    for i in range(lane, x.shape[0], wp.block_dim()):
+        v = x[i]
+        if wp.isnan(v):
+            nans += wp.float64(1.0)
+        else:
+            largest = wp.max(largest, wp.max(wp.abs(v[0]), wp.max(wp.abs(v[1]), wp.abs(v[2]))))
+    total = wp.tile_max(wp.tile(largest))
+    count = wp.tile_sum(wp.tile(nans))
+    if lane == 0:
+        state[X_MAX] = total[0]
+        state[X_NANS] = count[0]
+
+
+@wp.kernel(enable_backward=False)
 def _decide(state: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
     """After an iteration's updates: the stop reason, the iteration count and whether to go on; clears the sums
     for the next iteration."""
@@ -198,12 +252,13 @@ def add_dot(a: wp.array, b: wp.array, out: wp.array, slot: int = 0) -> None:
 
 
 class CgWorkspace:
-    """``definite_cg``'s work vectors (r, z, p, q), state and last captured CUDA graph, kept between solves of ``n``
+    """``definite_cg``'s work vectors (b, r, z, p, q), state, limits and last captured CUDA graph, kept between solves of ``n``
     3-vectors on ``device`` (a solver's matrices change arrays only when their sparsity does)."""
 
     def __init__(self, n: int, device):
-        self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(4))
-        self.state = wp.zeros(9, dtype=wp.float64, device=device)
+        self.b, self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(5))
+        self.state = wp.zeros(STATE_SIZE, dtype=wp.float64, device=device)
+        self.limits = wp.zeros(3, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap (``_set_limits``)
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
         self.no_basis = wp.empty(0, dtype=mat36d, device=device)
@@ -222,20 +277,18 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     ``coarse`` (with M; its inverse made, ``CoarseSpace.ready``): M becomes the two-level preconditioner
     M + P A_c^-1 P^T (coarse_space.py).
     ``workspace``: work arrays and the graph kept from earlier solves of the same size (a new one otherwise); the graph is
-    reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same."""
+    reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same (b is copied into
+    the workspace, so it may differ)."""
     device = b.device
     if workspace is not None and not len(workspace.r) == len(b) == len(x):
         raise ValueError(f"CG workspace of {len(workspace.r)} 3-vectors for b of {len(b)} and x of {len(x)}")
     ws = workspace if workspace is not None else CgWorkspace(len(b), device)
     r, z, p, q, state, condition = ws.r, ws.z, ws.p, ws.q, ws.state, ws.condition
-    state.zero_()  # the sums below add into it; a kept state holds the last solve's
     inverse = M.inverse_blocks if M is not None else ws.no_preconditioner
     if coarse is not None and not (M is not None and coarse.ready):
         raise ValueError("a coarse level needs the block-Jacobi preconditioner and a coarse inverse")
     prolonged = (coarse.basis, coarse.aggregate, coarse.values, coarse.restricted) if coarse is not None else \
         (ws.no_basis, ws.no_aggregate, ws.no_values, ws.no_values)
-    if coarse is not None:
-        coarse.restricted.zero_()
 
     def tiled(kernel, *inputs):
         wp.launch_tiled(kernel, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device,
@@ -246,19 +299,15 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         if coarse is not None:
             coarse.solve(r, state, RZ_NEW)
 
-    # r = b - A x, z = M r, p = z, and the state before the first iteration (ACTIVE 0: no step, sums only)
-    A.matvec(x, b, r, -1.0, 1.0)
-    step_precondition()
-    wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 1])
-    tiled(_dot, b, b, state, TOL2)
-    s = state.numpy()
-    tol2 = max(rtol * rtol * s[TOL2], atol * atol)
-    if s[RR] <= tol2:
-        return CgResult(True, False, 0)
-    if not s[RZ_NEW] > 0.0:
-        return CgResult(False, True, 0)
-    state.assign(np.array([s[RZ_NEW], 0.0, 0.0, 0.0, tol2, 0.0, 0.0, 1.0, float(maxiter)]))
-    condition.fill_(1)
+    def start():  # r = b - A x, z = M r, p = z, their sums (ACTIVE 0: no step), then the state of the first iteration
+        state.zero_()
+        if coarse is not None:
+            coarse.restricted.zero_()
+        A.matvec(x, ws.b, r, -1.0, 1.0)
+        step_precondition()
+        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 1])
+        tiled(_dot, ws.b, ws.b, state, TOL2)
+        wp.launch(_start, dim=1, device=device, inputs=[state, ws.limits, condition])
 
     def iteration():
         A.matvec(p, q, q, 1.0, 0.0)
@@ -271,30 +320,41 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         for _ in range(UNROLL):
             iteration()
 
-    if device.is_cuda:
-        conditional = wp.is_conditional_graph_supported()
+    def finish():
+        wp.launch_tiled(_largest_entry, dim=[1], block_dim=DOT_THREADS, device=device, inputs=[x, state])
+
+    wp.copy(ws.b, b)
+    wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])
+    conditional = device.is_cuda and wp.is_conditional_graph_supported()
+    if conditional:
         key = getattr(A, "graph_key", None)
         key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr)
         graph = ws.graph if key and key == ws.graph_key else None
         if graph is None:
-            iteration()  # outside any capture: loads the kernels' modules
+            start()  # outside any capture: loads the kernels' modules (the captured solve starts again from x)
             with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-                if conditional:
-                    wp.capture_while(condition, unrolled)
-                else:
-                    iteration()
+                start()
+                wp.capture_while(condition, unrolled)
+                finish()
             graph = capture.graph
             ws.captures += 1
             if key:
                 ws.graph_key, ws.graph = key, graph
-        if conditional:
-            wp.capture_launch(graph)
-        else:
+        wp.capture_launch(graph)
+    else:
+        start()
+        if device.is_cuda:  # without conditional graphs: one iteration captured, launched CHECK_EVERY times per read
+            iteration()  # outside any capture: loads the kernels' modules
+            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+                iteration()
+            ws.captures += 1
             while int(condition.numpy()[0]):
                 for _ in range(CHECK_EVERY):
-                    wp.capture_launch(graph)
-    else:
-        wp.capture_while(condition, iteration)
+                    wp.capture_launch(capture.graph)
+        else:
+            wp.capture_while(condition, iteration)
+        finish()
     s = state.numpy()
     converged, not_definite, not_definite_m, _ = _STOPS
-    return CgResult(bool(s[STOP] == converged), bool(s[STOP] in (not_definite, not_definite_m)), int(s[ITER]))
+    return CgResult(bool(s[STOP] == converged), bool(s[STOP] in (not_definite, not_definite_m)), int(s[ITER]),
+                    float("nan") if s[X_NANS] else float(s[X_MAX]))

@@ -37,7 +37,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
-from transtac_sim.physics.reductions import free_part, max_abs
+from transtac_sim.physics.reductions import free_part
 from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
 
 
@@ -211,7 +211,7 @@ class DeviceSolves:
         coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
         result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
         total = result.iterations
-        if result.converged and rtol > self.cg_tol and exact_below > 0.0 and max_abs(x) < exact_below:
+        if result.converged and rtol > self.cg_tol and exact_below > 0.0 and result.x_max < exact_below:
             result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
             total += result.iterations
         self.not_definite += result.not_definite

@@ -183,9 +183,9 @@ class NewtonSteps:
             while alpha > 1e-6:
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
                 fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=alpha)
-                e_try = self._energy(self._u_try, ind)
+                e_try, det_try = self._energy_and_min_det(self._u_try, ind)
                 if np.isfinite(e_try) and e_try <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
-                    if self._min_det(self._u_try) > 0.0:
+                    if (det_try if det_try is not None else self._min_det(self._u_try)) > 0.0:
                         break
                     inverted = True
                     alpha *= 0.5
