@@ -61,8 +61,31 @@ def test_step_summary_slope_length_and_sanity(device):
     dot, largest, finite = step_summary(_vec(du, device), _vec(rhs, device))
     assert dot == pytest.approx(np.sum(du * rhs), rel=1e-13) and largest == np.max(np.abs(du)) and finite
     again = step_summary(_vec(du, device), _vec(rhs, device))
-    assert again == (dot, largest, finite)  # one thread block, no atomics: the same bits every run
+    assert again == (dot, largest, finite)  # partials combined in a fixed order, no atomics: the same bits every run
     for bad in (np.nan, np.inf, -np.inf):
         broken = du.copy()
         broken[77, 0] = bad
         assert step_summary(_vec(broken, device), _vec(rhs, device))[2] is False
+
+
+@pytest.mark.parametrize("blocks", [7, 128])
+def test_partials_of_several_blocks_combine_to_numpys(blocks, monkeypatch):
+    """The first pass over several thread blocks (a GPU's, here on the CPU), their partial results combined by ``_combine``:
+    maxima, minima and NaN counts exact, sums to round-off, the same bits on every run; more blocks than a block's share
+    of the entries leaves some blocks without any (their partials are the combination's identity)."""
+    from transtac_sim.physics import reductions
+
+    monkeypatch.setattr(reductions, "reduction_blocks", lambda device: blocks)
+    rng = np.random.default_rng(7)
+    a, b, fixed = rng.standard_normal((3, N, 3))
+    fixed = (fixed > 0.5).astype(np.float64)
+    assert max_abs(_vec(a, "cpu"), _vec(b, "cpu")) == np.max(np.abs(a - b))
+    x = rng.standard_normal(4 * N)
+    assert extremes(wp.array(x, dtype=wp.float64)) == (x.min(), x.max())
+    rhs, norm = negated_free(_vec(a, "cpu"), _vec(fixed, "cpu"))
+    assert norm == pytest.approx(np.linalg.norm(-a * (1.0 - fixed)), rel=1e-14)
+    summary = step_summary(_vec(a, "cpu"), _vec(b, "cpu"))
+    assert summary[0] == pytest.approx(np.sum(a * b), rel=1e-13) and summary[1] == np.max(np.abs(a)) and summary[2]
+    assert step_summary(_vec(a, "cpu"), _vec(b, "cpu")) == summary
+    a[2000, 1] = np.nan
+    assert np.isnan(max_abs(_vec(a, "cpu"))) and step_summary(_vec(a, "cpu"), _vec(b, "cpu"))[2] is False

@@ -18,7 +18,7 @@ M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks), bl
 rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the device like
 ``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the start
 (r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
-(``wp.capture_while``) and max |x| at the end (``_largest_entry``), so the host reads the state once, at the end, and
+(``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state), so the host reads the state once, at the end, and
 writes only the solve's tolerances and cap before it (``_set_limits``); otherwise one iteration is captured and
 launched ``CHECK_EVERY`` times between host reads. An iteration is five
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
@@ -48,6 +48,7 @@ from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace, mat36d, prolong
+from transtac_sim.physics.reductions import launch_max_abs, reduction_buffer
 from transtac_sim.physics.sparse_product import diagonal_block
 
 CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
@@ -203,25 +204,6 @@ def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64)
 
 
 @wp.kernel(enable_backward=False)
-def _largest_entry(x: wp.array(dtype=wp.vec3d), state: wp.array(dtype=wp.float64)):
-    """max |x| over entries and components -> X_MAX, the entries with a NaN -> X_NANS (one thread block)."""
-    _, lane = wp.tid()
-    largest = wp.float64(0.0)
-    nans = wp.float64(0.0)
-    for i in range(lane, x.shape[0], wp.block_dim()):
-        v = x[i]
-        if wp.isnan(v):
-            nans += wp.float64(1.0)
-        else:
-            largest = wp.max(largest, wp.max(wp.abs(v[0]), wp.max(wp.abs(v[1]), wp.abs(v[2]))))
-    total = wp.tile_max(wp.tile(largest))
-    count = wp.tile_sum(wp.tile(nans))
-    if lane == 0:
-        state[X_MAX] = total[0]
-        state[X_NANS] = count[0]
-
-
-@wp.kernel(enable_backward=False)
 def _decide(state: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
     """After an iteration's updates: the stop reason, the iteration count and whether to go on; clears the sums
     for the next iteration."""
@@ -259,6 +241,7 @@ class CgWorkspace:
         self.b, self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(5))
         self.state = wp.zeros(STATE_SIZE, dtype=wp.float64, device=device)
         self.limits = wp.zeros(3, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap (``_set_limits``)
+        self.x_max = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
         self.no_basis = wp.empty(0, dtype=mat36d, device=device)
@@ -320,8 +303,9 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         for _ in range(UNROLL):
             iteration()
 
-    def finish():
-        wp.launch_tiled(_largest_entry, dim=[1], block_dim=DOT_THREADS, device=device, inputs=[x, state])
+    def finish():  # max |x| and its NaN count into the state, read with it
+        launch_max_abs(x, ws.x_max)
+        wp.copy(state, ws.x_max, dest_offset=X_MAX, count=2)
 
     wp.copy(ws.b, b)
     wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])

@@ -1,9 +1,15 @@
 """Reductions of the Newton loop's vectors on the solver's device, so that the host reads a few scalars instead of
 whole vectors (newton.py).
 
-Each kernel runs as one thread block of ``REDUCTION_THREADS`` threads striding over the array, then a tile
-reduction: no atomics, so every run gives the same bits, and the sums are summed in a fixed order. What they
-replace: the gradient, the Newton step, the step estimate, the iterate's largest entry and the 4 det F per tet
+Each reduction is two launches: ``reduction_blocks(device)`` thread blocks of ``REDUCTION_THREADS`` threads stride over
+the array and write one partial result per block (a tile reduction), then one thread block combines the partials
+(``_combine``): no atomics, so every run gives the same bits, and the sums are summed in a fixed order. On a GPU, one
+thread block alone took 60-95 us over press_slide's 31k nodes (an H100 runs a block on one of its 132 SMs), on the
+critical path of the Newton loop, whose host waits for each result; the two passes take 20-22 us (BENCHMARKS.md
+``fem_host_census_gpu``, ``fem_multi_block_reductions_gpu``). The CPU keeps one block (Warp runs a thread block as one
+thread there).
+
+What they replace: the gradient, the Newton step, the step estimate, the iterate's largest entry and the 4 det F per tet
 read to numpy once or twice per Newton pass (about 0.75 MB each on press_slide's 31k nodes; 2,553 device-to-host
 copies over frames 1-9 on an H100, 0.33 s of copying against 3.9 s of frames, BENCHMARKS.md
 ``fem_device_reductions_gpu``).
@@ -16,6 +22,8 @@ from __future__ import annotations
 import warp as wp
 
 REDUCTION_THREADS = 256
+CUDA_BLOCKS = 128  # thread blocks of a reduction's first pass on a GPU
+SUM, MAX, MIN = (wp.constant(k) for k in range(3))  # how ``_combine`` combines a result's partials
 
 
 @wp.func
@@ -35,12 +43,13 @@ def _largest_component(d: wp.vec3d):
 
 
 @wp.kernel(enable_backward=False)
-def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
-    """out = [max over entries and components of |a - b| (b empty: of |a|), count of entries with a NaN]."""
-    _, lane = wp.tid()
+def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64),
+                        blocks: int):
+    """[max over entries and components of |a - b| (b empty: of |a|), count of entries with a NaN], per block."""
+    block, lane = wp.tid()
     largest = wp.float64(0.0)
     nans = wp.float64(0.0)
-    for i in range(lane, a.shape[0], wp.block_dim()):
+    for i in range(block * wp.block_dim() + lane, a.shape[0], blocks * wp.block_dim()):
         d = a[i]
         if b.shape[0] > 0:
             d = d - b[i]
@@ -51,18 +60,18 @@ def _max_abs_difference(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d)
     total = wp.tile_max(wp.tile(largest))
     count = wp.tile_sum(wp.tile(nans))
     if lane == 0:
-        out[0] = total[0]
-        out[1] = count[0]
+        out[2 + 2 * block] = total[0]
+        out[3 + 2 * block] = count[0]
 
 
 @wp.kernel(enable_backward=False)
-def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
-    """out = [min, max, NaN count] of a."""
-    _, lane = wp.tid()
+def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64), blocks: int):
+    """[min, max, NaN count] of a, per block."""
+    block, lane = wp.tid()
     low = wp.float64(1.0e300)
     high = wp.float64(-1.0e300)
     nans = wp.float64(0.0)
-    for i in range(lane, a.shape[0], wp.block_dim()):
+    for i in range(block * wp.block_dim() + lane, a.shape[0], blocks * wp.block_dim()):
         v = a[i]
         if wp.isnan(v):
             nans += wp.float64(1.0)
@@ -73,34 +82,35 @@ def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
     highs = wp.tile_max(wp.tile(high))
     count = wp.tile_sum(wp.tile(nans))
     if lane == 0:
-        out[0] = lows[0]
-        out[1] = highs[0]
-        out[2] = count[0]
+        out[3 + 3 * block] = lows[0]
+        out[4 + 3 * block] = highs[0]
+        out[5 + 3 * block] = count[0]
 
 
 @wp.kernel(enable_backward=False)
 def _negated_free(g: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d),
-                  out: wp.array(dtype=wp.float64)):
-    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); out[0] = |rhs|^2."""
-    _, lane = wp.tid()
+                  out: wp.array(dtype=wp.float64), blocks: int):
+    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); |rhs|^2 per block."""
+    block, lane = wp.tid()
     squares = wp.float64(0.0)
-    for i in range(lane, g.shape[0], wp.block_dim()):
+    for i in range(block * wp.block_dim() + lane, g.shape[0], blocks * wp.block_dim()):
         v = -free_part(g[i], fixed[i])
         rhs[i] = v
         squares += wp.dot(v, v)
     total = wp.tile_sum(wp.tile(squares))
     if lane == 0:
-        out[0] = total[0]
+        out[1 + block] = total[0]
 
 
 @wp.kernel(enable_backward=False)
-def _step_summary(du: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64)):
-    """out = [du . rhs, max |du| over entries and components, count of entries with a NaN or an infinity]."""
-    _, lane = wp.tid()
+def _step_summary(du: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.float64),
+                  blocks: int):
+    """[du . rhs, max |du| over entries and components, count of entries with a NaN or an infinity], per block."""
+    block, lane = wp.tid()
     dot = wp.float64(0.0)
     largest = wp.float64(0.0)
     bad = wp.float64(0.0)
-    for i in range(lane, du.shape[0], wp.block_dim()):
+    for i in range(block * wp.block_dim() + lane, du.shape[0], blocks * wp.block_dim()):
         d = du[i]
         if wp.isfinite(d):
             dot += wp.dot(d, rhs[i])
@@ -111,59 +121,115 @@ def _step_summary(du: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d), o
     largests = wp.tile_max(wp.tile(largest))
     bads = wp.tile_sum(wp.tile(bad))
     if lane == 0:
-        out[0] = dots[0]
-        out[1] = largests[0]
-        out[2] = bads[0]
+        out[3 + 3 * block] = dots[0]
+        out[4 + 3 * block] = largests[0]
+        out[5 + 3 * block] = bads[0]
 
 
-def _launch(kernel, inputs: list, out: wp.array) -> None:
-    wp.launch_tiled(kernel, dim=[1], block_dim=REDUCTION_THREADS, device=out.device, inputs=[*inputs, out])
+@wp.kernel(enable_backward=False)
+def _combine(out: wp.array(dtype=wp.float64), ops: wp.vec3i, count: int, blocks: int):
+    """out[j] = the partials out[count + count b + j] of blocks b combined by ops[j] (SUM, MAX or MIN), j < count."""
+    _, lane = wp.tid()
+    for j in range(count):
+        op = ops[j]
+        value = wp.float64(0.0)
+        if op == MAX:
+            value = wp.float64(-1.0e300)
+        elif op == MIN:
+            value = wp.float64(1.0e300)
+        for b in range(lane, blocks, wp.block_dim()):
+            v = out[count + count * b + j]
+            if op == MAX:
+                value = wp.max(value, v)
+            elif op == MIN:
+                value = wp.min(value, v)
+            else:
+                value += v
+        sums = wp.tile_sum(wp.tile(value))
+        highs = wp.tile_max(wp.tile(value))
+        lows = wp.tile_min(wp.tile(value))
+        if lane == 0:
+            result = sums[0]
+            if op == MAX:
+                result = highs[0]
+            elif op == MIN:
+                result = lows[0]
+            out[j] = result
 
 
-def _reduce(kernel, inputs: list, size: int, device) -> list[float]:
-    out = wp.empty(size, dtype=wp.float64, device=device)
-    _launch(kernel, inputs, out)
-    return [float(v) for v in out.numpy()]
+def reduction_blocks(device) -> int:
+    """Thread blocks of a reduction's first pass on ``device``."""
+    return CUDA_BLOCKS if wp.get_device(device).is_cuda else 1
+
+
+def reduction_buffer(count: int, device) -> wp.array:
+    """A reduction's output: its ``count`` results, then ``count`` partials per block of the first pass."""
+    return wp.empty(count * (1 + reduction_blocks(device)), dtype=wp.float64, device=device)
+
+
+def _launch(kernel, inputs: list, out: wp.array, ops: tuple[int, ...]) -> None:
+    """The two passes of a reduction into ``out`` (``reduction_buffer(len(ops))``): ``kernel`` over blocks, then
+    ``_combine`` of their partials by ``ops``."""
+    blocks = reduction_blocks(out.device)
+    wp.launch_tiled(kernel, dim=[blocks], block_dim=REDUCTION_THREADS, device=out.device,
+                    inputs=[*inputs, out, blocks])
+    wp.launch_tiled(_combine, dim=[1], block_dim=REDUCTION_THREADS, device=out.device,
+                    inputs=[out, wp.vec3i(*ops, *([SUM] * (3 - len(ops)))), len(ops), blocks])
+
+
+def _reduce(kernel, inputs: list, ops: tuple[int, ...], device) -> list[float]:
+    out = reduction_buffer(len(ops), device)
+    _launch(kernel, inputs, out, ops)
+    return [float(v) for v in out.numpy()[:len(ops)]]
 
 
 def max_abs(a: wp.array, b: wp.array | None = None) -> float:
     """max |a - b| (max |a| without b) over the entries and components of vec3d arrays; NaN where any entry is NaN,
     as numpy's."""
-    empty = wp.empty(0, dtype=wp.vec3d, device=a.device)
-    largest, nans = _reduce(_max_abs_difference, [a, b if b is not None else empty], 2, a.device)
+    out = reduction_buffer(2, a.device)
+    launch_max_abs(a, out, b)
+    largest, nans = (float(v) for v in out.numpy()[:2])
     return float("nan") if nans else largest
+
+
+def launch_max_abs(a: wp.array, out: wp.array, b: wp.array | None = None) -> None:
+    """``max_abs`` without the read: [max |a - b| over the entries without a NaN, count of entries with a NaN] into out
+    (``reduction_buffer(2)``)."""
+    empty = wp.empty(0, dtype=wp.vec3d, device=a.device)
+    _launch(_max_abs_difference, [a, b if b is not None else empty], out, (MAX, SUM))
 
 
 def extremes(a: wp.array) -> tuple[float, float]:
     """(min, max) of a float64 array; (NaN, NaN) where it holds a NaN, as numpy's min and max (and, as they do, an
     error for an empty array)."""
-    out = wp.empty(3, dtype=wp.float64, device=a.device)
+    out = reduction_buffer(3, a.device)
     launch_extremes(a, out)
     return read_extremes(out)
 
 
 def launch_extremes(a: wp.array, out: wp.array) -> None:
-    """``extremes`` without the read: [min, max, NaN count] of a into out (3 float64), for ``read_extremes``."""
+    """``extremes`` without the read: [min, max, NaN count] of a into out (``reduction_buffer(3)``), for
+    ``read_extremes``."""
     if a.shape[0] == 0:
         raise ValueError("extremes of an empty array")
-    _launch(_extremes, [a], out)
+    _launch(_extremes, [a], out, (MIN, MAX, SUM))
 
 
 def read_extremes(out: wp.array) -> tuple[float, float]:
     """(min, max) from ``launch_extremes``'s [min, max, NaN count]."""
-    low, high, nans = (float(v) for v in out.numpy())
+    low, high, nans = (float(v) for v in out.numpy()[:3])
     return (float("nan"), float("nan")) if nans else (low, high)
 
 
 def negated_free(g: wp.array, fixed: wp.array) -> tuple[wp.array, float]:
     """(-g with its fixed components set to 0, the norm of that): Newton's right-hand side and |g| on the free dofs."""
     rhs = wp.empty_like(g)
-    (squares,) = _reduce(_negated_free, [g, fixed, rhs], 1, g.device)
+    (squares,) = _reduce(_negated_free, [g, fixed, rhs], (SUM,), g.device)
     return rhs, squares ** 0.5
 
 
 def step_summary(du: wp.array, rhs: wp.array) -> tuple[float, float, bool]:
     """(du . rhs, max |du|, whether every entry of du is finite): a Newton step's slope (with rhs = -g, -(du . g)),
     length and sanity in one read. The sum and the maximum are over the finite entries."""
-    dot, largest, bad = _reduce(_step_summary, [du, rhs], 3, du.device)
+    dot, largest, bad = _reduce(_step_summary, [du, rhs], (SUM, MAX, SUM), du.device)
     return dot, largest, bad == 0.0

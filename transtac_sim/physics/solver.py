@@ -35,6 +35,7 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
 from transtac_sim.physics.newton import NewtonSteps
 from transtac_sim.physics.point_displacement import PointDisplacement
+from transtac_sim.physics.reductions import reduction_buffer
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solver's API)
     FrameResult,
@@ -138,7 +139,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
         self._barrier_acts = False  # some det F below the barrier's threshold at the last ``_gradient``'s u
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
         self._det_work = (wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device),
-                          wp.empty(3, dtype=wp.float64, device=self.device))  # ``_min_det``'s det F and extremes
+                          reduction_buffer(3, self.device))  # ``_min_det``'s det F and extremes
         self._g = wp.empty_like(self.u.dof_values)  # ``_gradient``'s result (N per node)
         self._barrier_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # the barrier's energy at ``_gradient``
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
