@@ -1,4 +1,4 @@
-"""What the host does between a FEM frame's device synchronisations: its reads (device-to-host copies, each of which
+"""What the host does between a FEM frame's device synchronisations: its reads (``array.numpy`` of a device array, which
 waits for the GPU), kernel launches and copies made one by one, and CUDA graph replays, by the solver's call site.
 
     .venv/bin/python scripts/fem_host_census.py scenes/press_slide.toml --device cuda --frames 10 --skip-first
@@ -9,12 +9,14 @@ of the frames splits into the host's waits in reads (the GPU busy, or copying ba
 launches; the GPU idle for at least the first launch after each read). The script wraps Warp's ``launch`` (tiled
 launches included), ``capture_launch``, ``copy`` and ``array.numpy`` and records each call made outside a graph
 capture with the solver's innermost call site (the first frame in ``transtac_sim``) and the host seconds it took. The
-span between two reads is charged to the site of the read that ends it (what its work was for).
+span between two reads is charged to the site of the read that ends it (what its work was for). Waits that do not go
+through ``array.numpy`` (a ``copy`` into a host array, ``BsrMatrix.nnz_sync``, the condition reads of a CG loop
+without conditional graphs) are not counted as reads: they fall into the host's own time.
 
 It prints, for the frames counted: the reads, launches, copies and replays per Newton iteration; the host's seconds
 inside reads against the rest; and the read sites that take the most host time outside their waits, with the launches
-made for each. The wrappers themselves cost host time (about 2-5 us a call, the call-site lookup), so the frames run
-a little slower than untraced; compare runs of this script with each other.
+made for each. The wrappers themselves cost host time (the call-site lookup), so the frames run a little slower than
+untraced; compare runs of this script with each other.
 """
 
 from __future__ import annotations
@@ -82,6 +84,8 @@ class Census:
             self._span_ops += 1
 
     def wrap(self, original, kind: str, capturing):
+        """``original`` recorded as ``kind`` where it is called outside a capture (``capturing``: a function of the
+        call's arguments)."""
         census = self
 
         def traced(*args, **kwargs):
@@ -135,6 +139,8 @@ def install(census: Census):
 def main(scene: Path, device: str = typer.Option("cuda", help="cuda (or cpu, where nothing is read back)"),
          frames: int = typer.Option(10, min=1), skip_first: bool = typer.Option(True),
          top: int = typer.Option(15, min=1, help="read sites to list")) -> None:
+    if skip_first and frames < 2:
+        raise typer.BadParameter("--skip-first leaves no frame to count: give --frames 2 or more, or --no-skip-first")
     setup = load_setup(scene)
     physics = setup.scene.physics.model_copy(update={"device": device})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))

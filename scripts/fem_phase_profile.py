@@ -61,8 +61,8 @@ from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
 PHASES = {
-    QuasiStaticSolver: ("_gradient", "_energy", "_energy_and_min_det", "_hessian", "_min_det", "_max_penetration", "_update_lag",
-                        "_move_lag", "_warm_start", "_carried", "_indenter_struct"),
+    QuasiStaticSolver: ("_gradient", "_energy", "_energy_and_min_det", "_hessian", "_min_det", "_max_penetration",
+                        "_update_lag", "_move_lag", "_warm_start", "_carried", "_indenter_struct"),
     CoarseSpace: ("update",),  # the coarse level's Galerkin operator and its inverse (coarse_space.py)
     LinearSolver: ("solve", "solve_last", "_cg"),  # solve / solve_last exclusive of _cg: the set-up (sums, projection,
     # preconditioner; on the host path the conversion and factorisation), _cg: the device CG iterations
@@ -176,8 +176,11 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         {"coarse_cell_mm": coarse_cell_mm} if coarse_cell_mm is not None else {}))
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = PhaseClock()
+    missing = [name for cls, names in PHASES.items() for name in names if not hasattr(cls, name)]
+    if missing:  # an older tree through PYTHONPATH (a before/after comparison)
+        print(f"phases not in this tree's solver, not timed: {', '.join(missing)}")
     originals = [] if gpu_activity else [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items()
-                                         for name in names if hasattr(cls, name)]  # (an older tree may lack some)
+                                         for name in names if hasattr(cls, name)]
     activity: list = []
     failures = []
     solve_step = QuasiStaticSolver._solve_step

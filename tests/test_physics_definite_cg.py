@@ -41,6 +41,7 @@ def test_definite_cg_solves_a_positive_definite_system_to_its_tolerance(jacobi: 
     M = BlockJacobi(H) if jacobi else None
     result = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), x, 1e-10, 3 * N, M)
     assert result.converged and not result.not_definite and 0 < result.iterations <= 3 * N
+    assert result.x_max == np.abs(x.numpy()).max()
     residual = np.linalg.norm(A @ x.numpy().reshape(-1) - b.reshape(-1))
     assert residual <= 1e-10 * np.linalg.norm(b)
     np.testing.assert_allclose(x.numpy().reshape(-1), spla.spsolve(A.tocsc(), b.reshape(-1)), rtol=1e-7, atol=1e-9)
@@ -60,6 +61,11 @@ def test_definite_cg_stops_where_the_matrix_is_not_positive_definite():
     result = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), wp.zeros(N, dtype=wp.vec3d), 1e-10,
                          10 * N)
     assert result.not_definite and not result.converged and result.iterations < 3 * N
+    start = np.ones((N, 3))
+    start[7, 1] = np.nan  # a broken start: stopped before any iteration, and its x_max is NaN (never a short step)
+    broken = definite_cg(block_row_operator(_warp_bsr(_laplacian_3d(0.0))), wp.array(b, dtype=wp.vec3d),
+                         wp.array(start, dtype=wp.vec3d), 1e-10, 3 * N)
+    assert not broken.converged and broken.iterations == 0 and np.isnan(broken.x_max)
 
 
 def test_definite_cg_reports_its_iteration_cap():
@@ -157,10 +163,11 @@ def test_kept_workspace_solves_as_a_fresh_one(device: str):
         assert kept.iterations > 0 or start is not None, kept
         assert (maxiter > 7 or kept.iterations == 7) and (start is None or kept.iterations == 0), kept
         np.testing.assert_allclose(x_kept, x_fresh, rtol=tol, atol=tol * np.abs(x_fresh).max())
+        assert kept.x_max == np.abs(x_kept).max() and fresh.x_max == np.abs(x_fresh).max()  # read with the state
     H.values.assign(2.0 * H.values.numpy())  # the same arrays, another matrix: the solution halves
     b = rng.standard_normal((N, 3))
     before = spla.spsolve(A.tocsc(), b.reshape(-1))
     kept, x_kept = solve(b, 1e-10, 3 * N, kept=True)
-    assert kept.converged
+    assert kept.converged and kept.x_max == np.abs(x_kept).max()
     np.testing.assert_allclose(x_kept.reshape(-1), 0.5 * before, rtol=1e-5, atol=1e-7 * np.abs(before).max())
     assert workspace.captures == (1 if device != "cpu" else 0)

@@ -68,11 +68,12 @@ def test_step_summary_slope_length_and_sanity(device):
         assert step_summary(_vec(broken, device), _vec(rhs, device))[2] is False
 
 
-@pytest.mark.parametrize("blocks", [7, 128])
+@pytest.mark.parametrize("blocks", [7, 128, 4096])
 def test_partials_of_several_blocks_combine_to_numpys(blocks, monkeypatch):
-    """The first pass over several thread blocks (a GPU's, here on the CPU), their partial results combined by ``_combine``:
-    maxima, minima and NaN counts exact, sums to round-off, the same bits on every run; more blocks than a block's share
-    of the entries leaves some blocks without any (their partials are the combination's identity)."""
+    """The first pass over several thread blocks (a GPU's; here on the CPU, where a block is one thread), their partial
+    results combined by ``_combine``: maxima, minima and NaN counts exact, sums to round-off, the same bits on every
+    run. With 4096 blocks for 3001 entries some blocks get none: their partials are the combination's identity, which
+    must not win on data all of one sign."""
     from transtac_sim.physics import reductions
 
     monkeypatch.setattr(reductions, "reduction_blocks", lambda device: blocks)
@@ -80,8 +81,8 @@ def test_partials_of_several_blocks_combine_to_numpys(blocks, monkeypatch):
     a, b, fixed = rng.standard_normal((3, N, 3))
     fixed = (fixed > 0.5).astype(np.float64)
     assert max_abs(_vec(a, "cpu"), _vec(b, "cpu")) == np.max(np.abs(a - b))
-    x = rng.standard_normal(4 * N)
-    assert extremes(wp.array(x, dtype=wp.float64)) == (x.min(), x.max())
+    for x in (rng.standard_normal(N), rng.uniform(2.0, 3.0, N), rng.uniform(-3.0, -2.0, N)):
+        assert extremes(wp.array(x, dtype=wp.float64, device="cpu")) == (x.min(), x.max())
     rhs, norm = negated_free(_vec(a, "cpu"), _vec(fixed, "cpu"))
     assert norm == pytest.approx(np.linalg.norm(-a * (1.0 - fixed)), rel=1e-14)
     summary = step_summary(_vec(a, "cpu"), _vec(b, "cpu"))
@@ -89,3 +90,11 @@ def test_partials_of_several_blocks_combine_to_numpys(blocks, monkeypatch):
     assert step_summary(_vec(a, "cpu"), _vec(b, "cpu")) == summary
     a[2000, 1] = np.nan
     assert np.isnan(max_abs(_vec(a, "cpu"))) and step_summary(_vec(a, "cpu"), _vec(b, "cpu"))[2] is False
+
+
+def test_a_buffer_too_small_for_the_partials_is_refused():
+    from transtac_sim.physics.reductions import launch_extremes
+
+    with pytest.raises(ValueError, match="reduction_buffer"):
+        launch_extremes(wp.array(np.ones(10), dtype=wp.float64, device="cpu"),
+                        wp.empty(3, dtype=wp.float64, device="cpu"))

@@ -16,15 +16,15 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
 
 M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a coarse correction on
 rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the device like
-``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the start
-(r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
-(``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state), so the host reads the state once, at the end, and
-writes only the solve's tolerances and cap before it (``_set_limits``); otherwise one iteration is captured and
-launched ``CHECK_EVERY`` times between host reads. An iteration is five
+``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the start (r, z,
+p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
+(``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the
+solve's tolerances and cap before it (``_set_limits``) and reads the state once, at the end; without conditional
+graphs one iteration is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is five
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
 entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
 the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
-iteration cap) is one small float64 array, so the iterations of a stopped solve change nothing (x, r and p keep their
+whether it is still going, iteration cap, and at the end max |x| and its NaN count) is one small float64 array, so the iterations of a stopped solve change nothing (x, r and p keep their
 values). A pass of the captured loop therefore runs ``UNROLL`` iterations, and a solve pays for at most UNROLL - 1
 iterations after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
 (BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums
@@ -234,14 +234,14 @@ def add_dot(a: wp.array, b: wp.array, out: wp.array, slot: int = 0) -> None:
 
 
 class CgWorkspace:
-    """``definite_cg``'s work vectors (b, r, z, p, q), state, limits and last captured CUDA graph, kept between solves of ``n``
-    3-vectors on ``device`` (a solver's matrices change arrays only when their sparsity does)."""
+    """``definite_cg``'s work vectors (b, r, z, p, q), state, limits and last captured CUDA graph, kept between
+    solves of ``n`` 3-vectors on ``device`` (a solver's matrices change arrays only when their sparsity does)."""
 
     def __init__(self, n: int, device):
         self.b, self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(5))
         self.state = wp.zeros(STATE_SIZE, dtype=wp.float64, device=device)
         self.limits = wp.zeros(3, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap (``_set_limits``)
-        self.x_max = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
+        self.x_max_work = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
         self.no_basis = wp.empty(0, dtype=mat36d, device=device)
@@ -304,40 +304,46 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             iteration()
 
     def finish():  # max |x| and its NaN count into the state, read with it
-        launch_max_abs(x, ws.x_max)
-        wp.copy(state, ws.x_max, dest_offset=X_MAX, count=2)
+        launch_max_abs(x, ws.x_max_work)
+        wp.copy(state, ws.x_max_work, dest_offset=X_MAX, count=2)
 
     wp.copy(ws.b, b)
     wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])
-    conditional = device.is_cuda and wp.is_conditional_graph_supported()
-    if conditional:
+    if not device.is_cuda:
+        start()
+        wp.capture_while(condition, iteration)  # on the CPU: a host loop on the condition
+        finish()
+    else:  # with conditional graphs (CUDA 12.4+) the whole solve is the graph, otherwise one iteration
+        conditional = wp.is_conditional_graph_supported()
         key = getattr(A, "graph_key", None)
         key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr)
         graph = ws.graph if key and key == ws.graph_key else None
+        if not conditional:
+            start()
         if graph is None:
-            start()  # outside any capture: loads the kernels' modules (the captured solve starts again from x)
-            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            if conditional:  # outside any capture, to load the kernels' modules (the captured solve starts again)
                 start()
-                wp.capture_while(condition, unrolled)
                 finish()
+            else:
+                iteration()
+            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+                if conditional:
+                    start()
+                    wp.capture_while(condition, unrolled)
+                    finish()
+                else:
+                    iteration()
             graph = capture.graph
             ws.captures += 1
             if key:
                 ws.graph_key, ws.graph = key, graph
-        wp.capture_launch(graph)
-    else:
-        start()
-        if device.is_cuda:  # without conditional graphs: one iteration captured, launched CHECK_EVERY times per read
-            iteration()  # outside any capture: loads the kernels' modules
-            with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-                iteration()
-            ws.captures += 1
+        if conditional:
+            wp.capture_launch(graph)
+        else:  # launched CHECK_EVERY times between reads of the condition
             while int(condition.numpy()[0]):
                 for _ in range(CHECK_EVERY):
-                    wp.capture_launch(capture.graph)
-        else:
-            wp.capture_while(condition, iteration)
-        finish()
+                    wp.capture_launch(graph)
+            finish()
     s = state.numpy()
     converged, not_definite, not_definite_m, _ = _STOPS
     return CgResult(bool(s[STOP] == converged), bool(s[STOP] in (not_definite, not_definite_m)), int(s[ITER]),

@@ -145,16 +145,18 @@ def _combine(out: wp.array(dtype=wp.float64), ops: wp.vec3i, count: int, blocks:
                 value = wp.min(value, v)
             else:
                 value += v
-        sums = wp.tile_sum(wp.tile(value))
-        highs = wp.tile_max(wp.tile(value))
-        lows = wp.tile_min(wp.tile(value))
-        if lane == 0:
-            result = sums[0]
-            if op == MAX:
-                result = highs[0]
-            elif op == MIN:
-                result = lows[0]
-            out[j] = result
+        if op == MAX:  # the same op in every thread: the whole block takes the same branch
+            highs = wp.tile_max(wp.tile(value))
+            if lane == 0:
+                out[j] = highs[0]
+        elif op == MIN:
+            lows = wp.tile_min(wp.tile(value))
+            if lane == 0:
+                out[j] = lows[0]
+        else:
+            sums = wp.tile_sum(wp.tile(value))
+            if lane == 0:
+                out[j] = sums[0]
 
 
 def reduction_blocks(device) -> int:
@@ -171,6 +173,9 @@ def _launch(kernel, inputs: list, out: wp.array, ops: tuple[int, ...]) -> None:
     """The two passes of a reduction into ``out`` (``reduction_buffer(len(ops))``): ``kernel`` over blocks, then
     ``_combine`` of their partials by ``ops``."""
     blocks = reduction_blocks(out.device)
+    if out.shape[0] < len(ops) * (1 + blocks):
+        raise ValueError(f"a reduction of {len(ops)} results over {blocks} blocks needs a buffer of "
+                         f"{len(ops) * (1 + blocks)} (reduction_buffer), got {out.shape[0]}")
     wp.launch_tiled(kernel, dim=[blocks], block_dim=REDUCTION_THREADS, device=out.device,
                     inputs=[*inputs, out, blocks])
     wp.launch_tiled(_combine, dim=[1], block_dim=REDUCTION_THREADS, device=out.device,
@@ -180,7 +185,7 @@ def _launch(kernel, inputs: list, out: wp.array, ops: tuple[int, ...]) -> None:
 def _reduce(kernel, inputs: list, ops: tuple[int, ...], device) -> list[float]:
     out = reduction_buffer(len(ops), device)
     _launch(kernel, inputs, out, ops)
-    return [float(v) for v in out.numpy()[:len(ops)]]
+    return [float(v) for v in out[:len(ops)].numpy()]
 
 
 def max_abs(a: wp.array, b: wp.array | None = None) -> float:
@@ -188,7 +193,7 @@ def max_abs(a: wp.array, b: wp.array | None = None) -> float:
     as numpy's."""
     out = reduction_buffer(2, a.device)
     launch_max_abs(a, out, b)
-    largest, nans = (float(v) for v in out.numpy()[:2])
+    largest, nans = (float(v) for v in out[:2].numpy())
     return float("nan") if nans else largest
 
 
@@ -217,7 +222,7 @@ def launch_extremes(a: wp.array, out: wp.array) -> None:
 
 def read_extremes(out: wp.array) -> tuple[float, float]:
     """(min, max) from ``launch_extremes``'s [min, max, NaN count]."""
-    low, high, nans = (float(v) for v in out.numpy()[:3])
+    low, high, nans = (float(v) for v in out[:3].numpy())
     return (float("nan"), float("nan")) if nans else (low, high)
 
 
