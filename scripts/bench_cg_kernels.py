@@ -175,7 +175,9 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
     ws = work.cg
     p, q, r, z, x = (wp.clone(kept["rhs"]) for _ in range(5))
     state = ws.state
-    state.assign(np.array([1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1e9]))  # active, r.z = p.q = 1: every kernel does its work
+    values = np.zeros(definite_cg.STATE_SIZE)  # active, r.z = p.q = 1: every kernel does its work
+    values[[definite_cg.RZ, definite_cg.PQ, definite_cg.ACTIVE, definite_cg.MAXITER]] = (1.0, 1.0, 1.0, 1e9)
+    state.assign(values)
     basis = (coarse.basis, coarse.aggregate, coarse.values, coarse.restricted) if coarse else \
         (ws.no_basis, ws.no_aggregate, ws.no_values, ws.no_values)
 
