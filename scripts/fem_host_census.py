@@ -145,19 +145,23 @@ def main(scene: Path, device: str = typer.Option("cuda", help="cuda (or cpu, whe
     physics = setup.scene.physics.model_copy(update={"device": device})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     census = Census()
-    install(census)
+    uninstall = install(census)
     census.counting = not skip_first
     wall, iterations, started = 0.0, 0, time.perf_counter()
-    for f in simulate_frames(setup, frames, StageClock()):
-        now = time.perf_counter()
-        print(f"frame {f.frame}: {f.solver['seconds']:.2f} s, {f.solver['iterations']} Newton iterations", flush=True)
-        if census.counting:
-            wall += now - started
-            iterations += f.solver["iterations"]
-        else:
-            census.counting = True
-            census.reset()
-        started = time.perf_counter()
+    try:
+        for f in simulate_frames(setup, frames, StageClock()):
+            now = time.perf_counter()
+            print(f"frame {f.frame}: {f.solver['seconds']:.2f} s, {f.solver['iterations']} Newton iterations",
+                  flush=True)
+            if census.counting:
+                wall += now - started
+                iterations += f.solver["iterations"]
+            else:
+                census.counting = True
+                census.reset()
+            started = time.perf_counter()
+    finally:
+        uninstall()
     by_kind: dict[str, list[float]] = defaultdict(lambda: [0, 0.0])
     for (kind, _), (n, s) in census.calls.items():
         by_kind[kind][0] += n
