@@ -30,6 +30,10 @@ iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unr
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
 ``--warm-start``, ``--exact-below``, ``--lag-move-ratio`` and ``--friction-lag-moves`` are the Newton variants of
 scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
+``--estimate-band LO,HI`` sets newton.ESTIMATE_REFINE_BAND (where the device's step estimate is refined to the tight
+CG tolerance, multiples of newton_tol_mm; ``0,10`` refines every estimate below 10 newton_tol_mm, as before it); the
+run prints how many estimates were refined, their refinements' CG iterations, and the refined estimates' length
+(max |x|) against their loose one's.
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
 one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
 marker difference per frame).
@@ -145,6 +149,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
          coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
                                                   help="device_linear.COARSE_REFRESH_STEPS"),
+         estimate_band: str | None = typer.Option(None, help="newton.ESTIMATE_REFINE_BAND as LO,HI (multiples of "
+                                                  f"newton_tol_mm; default {newton.ESTIMATE_REFINE_BAND})"),
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
@@ -154,7 +160,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
-        LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0: None
+        LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0, refine_above=0.0: None
     if warp_spmv:
         device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: aslinearoperator(H)
     if float64_cg_matrix:
@@ -168,6 +174,13 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         device_linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
+    if estimate_band is not None:
+        try:
+            low, high = (float(v) for v in estimate_band.split(","))
+        except ValueError:
+            raise typer.BadParameter(f"--estimate-band takes LO,HI (two numbers), got {estimate_band!r}") from None
+        newton.ESTIMATE_REFINE_BAND = (low, high)
+    estimates = _record_estimates()
     reference = np.load(compare_to) if compare_to else None
     markers = []
     setup = load_setup(scene)
@@ -206,6 +219,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                   flush=True)
             if skip_first and f.frame == 0:
                 clock.reset()
+                estimates.clear()
                 if gpu_activity:
                     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
         if gpu_activity:
@@ -214,6 +228,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         for cls, name, original in originals:
             setattr(cls, name, original)
         QuasiStaticSolver._solve_step = solve_step
+        device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg = estimates.originals
     if save_markers:
         np.savez(save_markers, markers=np.stack(markers))
     counted = frame_seconds[1:] if skip_first and len(frame_seconds) > 1 else frame_seconds
@@ -237,6 +252,13 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
           f"converged); device CG graphs captured in the kept workspace (all frames): "
           f"{work.cg.captures if work else 0}; coarse level: "
           f"{(clock.linear_solver.coarse_stats() if clock.linear_solver else {}) or 'none'}")
+    if estimates:
+        refined = [e for e in estimates if len(e) == 2]
+        ratios = [e[1][1] / e[0][1] for e in refined if e[0][1] > 0.0]
+        print(f"device step estimates refined to the tight tolerance (band {newton.ESTIMATE_REFINE_BAND} newton_tol): "
+              f"{len(refined)} of {len(estimates)}, the loose solves {sum(e[0][0] for e in estimates)} CG iterations, "
+              f"the refinements {sum(e[1][0] for e in refined)}; refined length / loose length "
+              + (f"{min(ratios):.3f}-{max(ratios):.3f}" if ratios else "-"))
     print("| phase | calls | s | ms per call | share |")
     print("|---|---|---|---|---|")
     for name, s in sorted(clock.seconds.items(), key=lambda kv: -kv[1]):
@@ -249,6 +271,41 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         li = clock.linear_iterations
         print(f"linear solver iterations per solve: median {statistics.median(li):g}, max {max(li)}, "
               f"total {sum(li)} over {len(li)} solves")
+
+
+class _Estimates(list):
+    """The device step estimates of a run: per estimate, (CG iterations, max |x|) of its loose solve and, where it was
+    refined, of the refinement; ``originals`` are the functions ``_record_estimates`` replaced."""
+
+    originals: tuple
+
+
+def _record_estimates() -> _Estimates:
+    """Records each device step estimate's CG solves (device_linear.py ``_solve_last_cg``, ``definite_cg``)."""
+    estimates = _Estimates()
+    solve_last_cg, solve = device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg
+    estimates.originals = (solve_last_cg, solve)
+    current: list | None = None
+
+    def recording_solve(*args, **kwargs):
+        result = solve(*args, **kwargs)
+        if current is not None:
+            current.append((result.iterations, result.x_max))
+        return result
+
+    def recording_estimate(self, *args, **kwargs):
+        nonlocal current
+        current = []
+        try:
+            return solve_last_cg(self, *args, **kwargs)
+        finally:
+            if current:
+                estimates.append(tuple(current))
+            current = None
+
+    device_linear.DeviceSolves._solve_last_cg = recording_estimate
+    device_linear.definite_cg = recording_solve
+    return estimates
 
 
 def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None):

@@ -188,8 +188,9 @@ def test_device_last_resort_solves_the_shifted_system():
 @pytest.mark.parametrize("device", DEVICES)
 def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch, device):
     """The device's step estimate (``solve_last``, device_linear.py): the last converged system solved for a new
-    right-hand side to ``ESTIMATE_RTOL``, on to ``cg_tol`` where it is below ``exact_below``; within
-    ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations, else None; its iterations and failures counted."""
+    right-hand side to ``ESTIMATE_RTOL``, on to ``cg_tol`` where its max |x| is within [``refine_above``,
+    ``exact_below``); within ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations, else None; its iterations and
+    failures counted."""
     solver, ind = _pressed_solver(device=device)
     linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
     g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
@@ -208,6 +209,11 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
     assert np.all(loose.numpy()[solver._fixed_nodes] == 0.0) and linear.estimate_iterations > 0
     tight = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device), exact_below=1e9)  # small enough: on to cg_tol
     assert residual(tight) <= linear.cg_tol
+    length = float(np.abs(loose.numpy()).max())  # below the band [refine_above, exact_below): the loose one is kept
+    kept = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device), exact_below=1e9, refine_above=2.0 * length)
+    assert linear.cg_tol < residual(kept) <= device_linear.ESTIMATE_RTOL
+    # the premise of newton.ESTIMATE_REFINE_BAND (0.25, 2): a loose length outside the band decides as the refined would
+    assert 0.5 < float(np.abs(tight.numpy()).max()) / length < 4.0
     monkeypatch.setattr(device_linear, "ESTIMATE_RTOL", 1e-12)  # not reachable within 2x the system's iterations
     assert linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device)) is None and linear.estimates_unconverged == 1
 

@@ -169,17 +169,18 @@ class DeviceSolves:
                 return x
         return None
 
-    def _solve_last_cg(self, rhs: wp.array, exact_below: float) -> wp.array | None:
+    def _solve_last_cg(self, rhs: wp.array, exact_below: float, refine_above: float = 0.0) -> wp.array | None:
         """The step estimate on the device: the last converged system solved for ``rhs`` to ``ESTIMATE_RTOL`` in at most
         ``ESTIMATE_CAP_FACTOR`` times that system's CG iterations (at least 50), then on to ``cg_tol`` (within
-        ``cg_maxiter``) where it is below ``exact_below`` mm; None where it does not converge."""
+        ``cg_maxiter``) where its max |x| is within [``refine_above``, ``exact_below``) mm; None where it does not
+        converge."""
         if self._last_cg is None:
             return None
         A, M = self._last_cg
         x = self._device_work().x
         x.zero_()
         cap = max(50, int(ESTIMATE_CAP_FACTOR * self._converged_iterations))
-        converged, iterations = self._cg(A, M, rhs, x, ESTIMATE_RTOL, cap, exact_below)
+        converged, iterations = self._cg(A, M, rhs, x, ESTIMATE_RTOL, cap, exact_below, refine_above)
         self.estimate_iterations += iterations
         self.estimates_unconverged += not converged
         return wp.clone(x) if converged else None  # the kept x is the next solve's
@@ -203,15 +204,15 @@ class DeviceSolves:
                 **{f"coarse_{k}_s": round(v, 3) for k, v in coarse.seconds.items()}}
 
     def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
-            exact_below: float) -> tuple[bool, int]:
-        """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where max |x| < ``exact_below``:
-        (converged, iterations). Not converged also where A is found not to be positive definite (definite_cg.py;
-        ``not_definite`` counts those; a NaN stops it the same way)."""
+            exact_below: float, refine_above: float = 0.0) -> tuple[bool, int]:
+        """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where ``refine_above`` <= max |x| <
+        ``exact_below`` (mm): (converged, iterations). Not converged also where A is found not to be positive definite
+        (definite_cg.py; ``not_definite`` counts those; a NaN stops it the same way)."""
         work = self._device_work()
         coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
         result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
         total = result.iterations
-        if result.converged and rtol > self.cg_tol and exact_below > 0.0 and result.x_max < exact_below:
+        if result.converged and rtol > self.cg_tol and refine_above <= result.x_max < exact_below:
             result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
             total += result.iterations
         self.not_definite += result.not_definite

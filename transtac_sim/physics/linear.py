@@ -172,30 +172,33 @@ class LinearSolver(DeviceSolves):
         return self._lu.solve(b)
 
     def _kept_pcg(self, A: sp.csc_matrix, b: np.ndarray, loose: float, tight: float, exact_below: float,
-                  x0: np.ndarray | None = None) -> tuple[np.ndarray | None, int]:
-        """PCG with the kept factorisation from ``x0`` to ``loose``, then on to ``tight`` where the solution is below
-        ``exact_below`` mm: (x or None, iterations)."""
+                  x0: np.ndarray | None = None, refine_above: float = 0.0) -> tuple[np.ndarray | None, int]:
+        """PCG with the kept factorisation from ``x0`` to ``loose``, then on to ``tight`` where max |x| (mm) is within
+        [``refine_above``, ``exact_below``): (x or None, iterations)."""
         x, iterations = pcg(A, b, self._lu.solve, loose, self.reuse_max_iterations, x0)
-        if x is not None and loose > tight and np.max(np.abs(x)) < exact_below:
+        if x is not None and loose > tight and refine_above <= np.max(np.abs(x)) < exact_below:
             x, more = pcg(A, b, self._lu.solve, tight, self.reuse_max_iterations, x)
             iterations += more
         return x, iterations
 
-    def solve_last(self, rhs: wp.array, rtol: float = 1.0e-3, exact_below: float = 0.0) -> wp.array | None:
+    def solve_last(self, rhs: wp.array, rtol: float = 1.0e-3, exact_below: float = 0.0,
+                   refine_above: float = 0.0) -> wp.array | None:
         """The last system's matrix solved for another right-hand side ``rhs`` (vec3d per node, on the device; 0 on the
         fixed components), without assembly or factorisation: by CG preconditioned with the kept factorisation (direct
-        path: to ``ESTIMATE_RTOL``, then on to ``rtol`` where the solution is below ``exact_below`` mm) or with the
-        kept preconditioner on the device (CG path: to device_linear.ESTIMATE_RTOL, then on to ``cg_tol`` where the
-        solution is below ``exact_below`` mm; ``rtol`` is the direct path's only), because an early-stopped CG
-        solution is shorter than the exact one and the caller tests convergence on it. A new array on the device with 0 on the fixed components, or None (no system yet, or
-        no convergence within the iterations allowed)."""
+        path: to ``ESTIMATE_RTOL``, then on to ``rtol``) or with the kept preconditioner on the device (CG path: to
+        device_linear.ESTIMATE_RTOL, then on to ``cg_tol``; ``rtol`` is the direct path's only). It goes on to the
+        tighter tolerance only where the loose solution's max |x| is within [``refine_above``, ``exact_below``) mm:
+        an early-stopped CG solution is mostly shorter than the exact one, and the caller tests convergence on its length
+        (newton.py ``ESTIMATE_REFINE_BAND``). A new array on the device with 0 on the fixed components, or None (no
+        system yet, or no convergence within the iterations allowed)."""
         if self.method == "cg":
-            return self._solve_last_cg(rhs, exact_below)
+            return self._solve_last_cg(rhs, exact_below, refine_above)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:
             return None
         b = rhs.numpy().reshape(-1)[self._free]
         with self._blas.limit(limits=1, user_api="blas"):
-            x, _ = self._kept_pcg(self._last_free, b, max(rtol, ESTIMATE_RTOL), rtol, exact_below)
+            x, _ = self._kept_pcg(self._last_free, b, max(rtol, ESTIMATE_RTOL), rtol, exact_below,
+                                  refine_above=refine_above)
         if x is None:
             return None
         out = np.zeros(3 * self._node_count)

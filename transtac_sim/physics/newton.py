@@ -106,6 +106,15 @@ LAG_MOVE_RATIOS = {"direct": 0.1, "cg": 0.03}
 #: (10 took 13 % more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
 EXACT_BELOW = 100.0
 
+#: the step estimate (``LinearSolver.solve_last``) is solved loosely (device_linear.ESTIMATE_RTOL) and refined to the
+#: tight tolerance only where its length (max |x|) is within these multiples of newton_tol_mm: there the convergence
+#: test (estimate < newton_tol_mm) could go either way. Outside them the loose estimate decides it as the refined one
+#: would: on press_slide (H100) refining every estimate below 10 newton_tol_mm, as before, the refined ones were
+#: 0.91-1.98 times as long as their loose ones, and those refinements took 3,625 of the estimates' 6,351 CG iterations;
+#: with this band 8-9 estimates of about 110 are refined, the estimates take 0.6x the CG iterations and the frames
+#: 0.91x the time, with the same Newton iterations (BENCHMARKS.md ``fem_estimate_refinement_gpu``)
+ESTIMATE_REFINE_BAND = (0.25, 2.0)
+
 #: where an indenter moves away from the gel, u_prev scaled by each of these is a warm-start guess (``_warm_start``)
 UNLOAD_SCALES = (0.25, 0.5, 0.75)
 
@@ -123,7 +132,8 @@ class NewtonSteps:
         move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
         when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
         was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
-        the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation; not
+        the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation, refined to
+        the tight tolerance only where its length is near newton_tol_mm, ``ESTIMATE_REFINE_BAND``; not
         after a lag move made on an estimate, where the step is seldom converged), otherwise it is the full Newton
         step itself; the estimate also starts the next system's solve on the host. The linear solver solves each
         system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within
@@ -143,7 +153,8 @@ class NewtonSteps:
             if g_norm == 0.0:  # e.g. nothing touches yet: already at equilibrium
                 return True, iterations, "", 0.0
             g_first = g_first or g_norm
-            estimate = self._linear.solve_last(rhs, exact_below=10.0 * tol) if full_step else None
+            estimate = self._linear.solve_last(rhs, exact_below=ESTIMATE_REFINE_BAND[1] * tol,
+                                               refine_above=ESTIMATE_REFINE_BAND[0] * tol) if full_step else None
             remaining = max_abs(estimate) if estimate is not None else np.inf
             if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
