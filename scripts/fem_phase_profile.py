@@ -28,12 +28,10 @@ iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unr
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
-``--warm-start``, ``--exact-below``, ``--lag-move-ratio`` and ``--friction-lag-moves`` are the Newton variants of
-scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
-``--estimate-band LO,HI`` sets newton.ESTIMATE_REFINE_BAND (where the device's step estimate is refined to the tight
-CG tolerance, multiples of newton_tol_mm; ``0,10`` refines every estimate below 10 newton_tol_mm, as before it); the
-run prints how many estimates were refined, their refinements' CG iterations, and the refined estimates' length
-(max |x|) against their loose one's.
+``--warm-start``, ``--exact-below``, ``--lag-move-ratio``, ``--friction-lag-moves`` and ``--estimate-band`` are the
+Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``, ``fem_estimate_refinement_gpu``).
+On the device path the run also prints how many step estimates were refined to the tight CG tolerance, their
+refinements' CG iterations, and the refined estimates' length (max |x|, mm) against their loose one's.
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
 one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
 marker difference per frame).
@@ -149,14 +147,13 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
          coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
                                                   help="device_linear.COARSE_REFRESH_STEPS"),
-         estimate_band: str | None = typer.Option(None, help="newton.ESTIMATE_REFINE_BAND as LO,HI (multiples of "
-                                                  f"newton_tol_mm; default {newton.ESTIMATE_REFINE_BAND})"),
+         estimate_band: str | None = solver_variants.ESTIMATE_BAND_OPTION,
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
-    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor)
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
@@ -174,13 +171,6 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         device_linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
-    if estimate_band is not None:
-        try:
-            low, high = (float(v) for v in estimate_band.split(","))
-        except ValueError:
-            raise typer.BadParameter(f"--estimate-band takes LO,HI (two numbers), got {estimate_band!r}") from None
-        newton.ESTIMATE_REFINE_BAND = (low, high)
-    estimates = _record_estimates()
     reference = np.load(compare_to) if compare_to else None
     markers = []
     setup = load_setup(scene)
@@ -206,6 +196,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
 
     QuasiStaticSolver._solve_step = noting_failures
     frame_seconds, frame_iterations = [], []
+    estimates = _record_estimates()
     try:
         for f in simulate_frames(setup, frames, StageClock()):
             frame_seconds.append(f.solver["seconds"])
@@ -255,7 +246,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if estimates:
         refined = [e for e in estimates if len(e) == 2]
         ratios = [e[1][1] / e[0][1] for e in refined if e[0][1] > 0.0]
-        print(f"device step estimates refined to the tight tolerance (band {newton.ESTIMATE_REFINE_BAND} newton_tol): "
+        band = getattr(newton, "ESTIMATE_REFINE_BAND", "below 10")  # (an older tree refines every one below 10)
+        print(f"device step estimates refined to the tight tolerance (band {band} newton_tol): "
               f"{len(refined)} of {len(estimates)}, the loose solves {sum(e[0][0] for e in estimates)} CG iterations, "
               f"the refinements {sum(e[1][0] for e in refined)}; refined length / loose length "
               + (f"{min(ratios):.3f}-{max(ratios):.3f}" if ratios else "-"))
@@ -274,8 +266,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
 
 
 class _Estimates(list):
-    """The device step estimates of a run: per estimate, (CG iterations, max |x|) of its loose solve and, where it was
-    refined, of the refinement; ``originals`` are the functions ``_record_estimates`` replaced."""
+    """The device step estimates of a run: per estimate, (CG iterations, max |x| in mm) of its loose solve and, where it
+    was refined, of the refinement; ``originals`` are the functions ``_record_estimates`` replaced."""
 
     originals: tuple
 
@@ -283,12 +275,12 @@ class _Estimates(list):
 def _record_estimates() -> _Estimates:
     """Records each device step estimate's CG solves (device_linear.py ``_solve_last_cg``, ``definite_cg``)."""
     estimates = _Estimates()
-    solve_last_cg, solve = device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg
-    estimates.originals = (solve_last_cg, solve)
+    solve_last_cg, cg_solve = device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg
+    estimates.originals = (solve_last_cg, cg_solve)
     current: list | None = None
 
     def recording_solve(*args, **kwargs):
-        result = solve(*args, **kwargs)
+        result = cg_solve(*args, **kwargs)
         if current is not None:
             current.append((result.iterations, result.x_max))
         return result
@@ -308,8 +300,9 @@ def _record_estimates() -> _Estimates:
     return estimates
 
 
-def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None):
-    """``definite_cg``'s interface on Warp's ``cg`` (which never reports an indefinite matrix)."""
+def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None):
+    """``definite_cg``'s interface on Warp's ``cg`` (which never reports an indefinite matrix; block-Jacobi only, no
+    coarse level)."""
     iterations, err, tol = cg(A, b, x, tol=rtol, atol=atol, maxiter=maxiter, M=M, check_every=25)
     return CgResult(float(err) <= float(tol), False, int(iterations), max_abs(x))
 

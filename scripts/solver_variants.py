@@ -9,30 +9,47 @@ import functools
 import typer
 
 from transtac_sim.physics import device_linear, newton, settings
-from transtac_sim.physics.newton import NewtonSteps
+from transtac_sim.physics.warm_start import WarmStart
 
 WARM_STARTS = ("all", "extrapolated", "none")
 
 
 def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
           lag_move_ratio: float | None = None, estimate_rtol: float = device_linear.ESTIMATE_RTOL,
-          estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR) -> None:
-    """``warm_start``: the guesses a (sub)step may start from (newton.py ``_warm_start``): all, extrapolated (not the
+          estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR, estimate_band: str | None = None) -> None:
+    """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not the
     slide's carried one), or none (the last converged state); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``: the device's step estimate
-    (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR)."""
+    (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``: newton.ESTIMATE_REFINE_BAND as "LO,HI"
+    (None: as it is)."""
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
+    if estimate_band is not None:
+        newton.ESTIMATE_REFINE_BAND = _band(estimate_band)
     newton.EXACT_BELOW = exact_below
     if lag_move_ratio is not None:
         newton.LAG_MOVE_RATIOS = dict.fromkeys(newton.LAG_MOVE_RATIOS, lag_move_ratio)
     device_linear.ESTIMATE_RTOL = estimate_rtol
     device_linear.ESTIMATE_CAP_FACTOR = estimate_cap_factor
     if warm_start != "all":
-        guesses = NewtonSteps._guesses
-        NewtonSteps._carried = lambda self, shift: None
-        NewtonSteps._guesses = lambda self, step: (
+        guesses = WarmStart._guesses
+        WarmStart._carried = lambda self, shift: None
+        WarmStart._guesses = lambda self, step: (
             [] if warm_start == "none" else [g for g in guesses(self, step) if g is not None])
+
+
+def _band(text: str) -> tuple[float, float]:
+    """``--estimate-band``'s "LO,HI" (multiples of newton_tol_mm, 0 <= LO <= HI), for a tree that has the band."""
+    if not hasattr(newton, "ESTIMATE_REFINE_BAND"):
+        raise typer.BadParameter("--estimate-band: this package has no newton.ESTIMATE_REFINE_BAND (an older tree: it "
+                                 "refines every step estimate below 10 newton_tol_mm)")
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"--estimate-band takes LO,HI (two numbers), got {text!r}") from None
+    if not 0.0 <= low <= high:
+        raise typer.BadParameter(f"--estimate-band needs 0 <= LO <= HI, got {text!r}")
+    return low, high
 
 
 def solver_settings(**fields) -> None:
@@ -59,6 +76,9 @@ ESTIMATE_RTOL_OPTION = typer.Option(device_linear.ESTIMATE_RTOL, min=0.0, max=1.
                                     help="device_linear.ESTIMATE_RTOL (the device's step estimate)")
 ESTIMATE_CAP_FACTOR_OPTION = typer.Option(device_linear.ESTIMATE_CAP_FACTOR, min=0.0,
                                           help="device_linear.ESTIMATE_CAP_FACTOR")
+ESTIMATE_BAND_OPTION = typer.Option(None, help="newton.ESTIMATE_REFINE_BAND as LO,HI: where the step estimate is "
+                                    "refined to the tight tolerance, multiples of newton_tol_mm (default "
+                                    f"{getattr(newton, 'ESTIMATE_REFINE_BAND', None)}; 0,10 as before it)")
 FRICTION_LAG_MOVES_OPTION = typer.Option(None, min=1, help="replace the scene's [physics] friction_lag_moves (per step)")
 FRICTION_MEMORY_OPTION = typer.Option(True, "--friction-memory/--no-friction-memory",
                                       help="carry friction's sticking stretch from step to step "

@@ -85,8 +85,8 @@ def _trace_newton() -> None:
 
     move_lag, raise_stiffness = QuasiStaticSolver._move_lag, QuasiStaticSolver._raise_stiffness
 
-    def logged_move_lag(self, ind, remaining):
-        moved = move_lag(self, ind, remaining)
+    def logged_move_lag(self, ind, remaining, *args):
+        moved = move_lag(self, ind, remaining, *args)
         if moved:
             ANATOMY[-1]["lag_moves"] += 1
             print(f"    friction's lag moved (estimated remaining step {remaining:.2e} mm)", flush=True)

@@ -12,6 +12,7 @@ from transtac_sim.physics import (
     SolverDidNotConverge,
     SolverSettings,
     newton,
+    warm_start,
 )
 from transtac_sim.physics.box_mesh import box_tet_mesh, gel_block
 
@@ -320,7 +321,7 @@ def test_frictionless_press_takes_few_newton_iterations():
 
 
 def test_release_starts_from_the_scaled_state_and_ends_as_a_direct_press():
-    """A release (the indenter lifts 0.3 -> 0.1 mm) takes a warm start: u_prev scaled (newton.py ``UNLOAD_SCALES``), as
+    """A release (the indenter lifts 0.3 -> 0.1 mm) takes a warm start: u_prev scaled (warm_start.py ``UNLOAD_SCALES``), as
     the extrapolated press increment points the wrong way; the frame equals pressing to 0.1 mm at once (frictionless
     elasticity is path independent)."""
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
@@ -331,8 +332,8 @@ def test_release_starts_from_the_scaled_state_and_ends_as_a_direct_press():
     step = solver._pose_step([_lift(4.0 - 0.3)], [_lift(4.0 - 0.1)])
     guesses = [g.numpy() for g in solver._guesses(step)]
     u_prev = solver.u_prev.dof_values.numpy()
-    assert len(guesses) == len(newton.UNLOAD_SCALES)  # the press increment extrapolated backwards is not offered
-    for guess, scale in zip(guesses, newton.UNLOAD_SCALES, strict=True):
+    assert len(guesses) == len(warm_start.UNLOAD_SCALES)  # the press increment extrapolated backwards is not offered
+    for guess, scale in zip(guesses, warm_start.UNLOAD_SCALES, strict=True):
         np.testing.assert_allclose(guess, scale * u_prev, rtol=0.0, atol=1e-15)
     released = solver.solve_frame([_lift(4.0 - 0.1)])
     assert released.record.converged and released.record.warm_starts == 1, released.record
@@ -344,7 +345,7 @@ def test_release_starts_from_the_scaled_state_and_ends_as_a_direct_press():
 
 
 def test_carried_warm_start_shifts_an_affine_field_exactly():
-    """The slide's warm start u_prev(X - shift) (newton.py ``_carried``, a BVH lookup on the solver's device): for
+    """The slide's warm start u_prev(X - shift) (warm_start.py ``_carried``, a BVH lookup on the solver's device): for
     an affine u_prev (exact in P2) it is A (X - shift) + c where X - shift lies in the gel, u_prev(X) where it does
     not, and 0 on the fixed components."""
     V, solver = _sphere_on_block(0.5)

@@ -20,7 +20,9 @@ from transtac_sim.physics import (
     contact,
     device_linear,
     elasticity,
+    newton,
 )
+from transtac_sim.physics import linear as linear_module
 from transtac_sim.physics.box_mesh import gel_block
 from transtac_sim.physics.device_linear import SHIFTS, fixed_blocks, project_fixed
 from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
@@ -212,8 +214,10 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
     length = float(np.abs(loose.numpy()).max())  # below the band [refine_above, exact_below): the loose one is kept
     kept = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device), exact_below=1e9, refine_above=2.0 * length)
     assert linear.cg_tol < residual(kept) <= device_linear.ESTIMATE_RTOL
-    # the premise of newton.ESTIMATE_REFINE_BAND (0.25, 2): a loose length outside the band decides as the refined would
-    assert 0.5 < float(np.abs(tight.numpy()).max()) / length < 4.0
+    # the premise of newton.ESTIMATE_REFINE_BAND (low, high): a loose length below low x newton_tol_mm refines to below
+    # newton_tol_mm and one above high x newton_tol_mm to above it (the convergence test decides as the refined would)
+    low, high = newton.ESTIMATE_REFINE_BAND
+    assert 1.0 / high < float(np.abs(tight.numpy()).max()) / length < 1.0 / low
     monkeypatch.setattr(device_linear, "ESTIMATE_RTOL", 1e-12)  # not reachable within 2x the system's iterations
     assert linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device)) is None and linear.estimates_unconverged == 1
 
@@ -402,6 +406,76 @@ def test_direct_path_solves_to_the_forcing_term_with_its_kept_factorisation():
     iterations = linear.last_iterations
     again = linear.solve(solver._hessian(ind, 1.0, False), rhs, rtol=0.05, guess=tight)
     assert linear.last_iterations == 0 and np.array_equal(again.numpy(), tight.numpy()) and iterations > 0
+
+
+def test_direct_path_step_estimate_is_refined_only_within_its_band(monkeypatch):
+    """The direct path's step estimate (``solve_last``): PCG with the kept factorisation to its loose tolerance, then on
+    to the one asked for only where the loose solution's max |x| lies within [``refine_above``, ``exact_below``)."""
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("direct", solver._fixed_nodes, solver.device)
+    g = solver._gradient(ind).numpy().copy()
+    g[solver._fixed_nodes] = 0.0
+    rhs = wp.array(-g, dtype=wp.vec3d)
+    assert linear.solve(solver._hessian(ind, 1.0, True), rhs) is not None  # factorised: kept for the estimates
+    tolerances = []
+
+    def recording_pcg(A, b, M, rtol, maxiter, x0=None):
+        tolerances.append(rtol)
+        return pcg(A, b, M, rtol, maxiter, x0)
+
+    monkeypatch.setattr(linear_module, "pcg", recording_pcg)
+    length = float(np.abs(linear.solve_last(rhs, rtol=1e-8).numpy()).max())  # no band given: loose only
+    assert tolerances == [linear_module.ESTIMATE_RTOL] and length > 0.0
+    tolerances.clear()
+    linear.solve_last(rhs, rtol=1e-8, exact_below=2.0 * length, refine_above=0.5 * length)  # within: refined
+    assert tolerances == [linear_module.ESTIMATE_RTOL, 1e-8]
+    tolerances.clear()
+    linear.solve_last(rhs, rtol=1e-8, exact_below=4.0 * length, refine_above=2.0 * length)  # shorter than the band
+    assert tolerances == [linear_module.ESTIMATE_RTOL]
+
+
+def test_step_estimate_band_covers_the_thresholds_it_is_compared_with():
+    """``_estimate_band``: ``ESTIMATE_REFINE_BAND`` x newton_tol_mm (the convergence test), widened to the band about
+    friction's lag threshold (``_move_lag``: max(tol, r |u - u_lag|), r = 0.1 on the direct path) as far as that lies
+    below ``ESTIMATE_REFINED_BELOW`` x newton_tol_mm; not where the lag may not move."""
+    solver, _ = _pressed_solver()
+    tol = solver.settings.newton_tol_mm
+    low, high = newton.ESTIMATE_REFINE_BAND
+    top = newton.ESTIMATE_REFINED_BELOW * tol
+
+    def band(change):
+        b = solver._estimate_band(change)
+        assert b["refine_above"] == pytest.approx(low * tol)
+        return b["exact_below"]
+
+    assert band(None) == pytest.approx(high * tol) == band(5.0 * tol)  # no lag move below a change of 10 tol
+    assert band(20.0 * tol) == pytest.approx(max(high, min(top / tol, high * 2.0)) * tol)  # threshold 2 tol
+    assert band(50.0 * tol) == pytest.approx(min(top, high * 5.0 * tol))  # threshold 5 tol
+    assert band(1000.0 * tol) == pytest.approx(high * tol)  # threshold 100 tol: its band lies above top
+
+
+def test_newton_passes_its_refinement_band_to_the_step_estimate(monkeypatch):
+    """Each step estimate Newton asks for is refined only within its band (``_estimate_band``): from
+    ``ESTIMATE_REFINE_BAND[0]`` x newton_tol_mm (``refine_above``) to between ``ESTIMATE_REFINE_BAND[1]`` and
+    ``ESTIMATE_REFINED_BELOW`` x newton_tol_mm (``exact_below``)."""
+    solver, _ = _pressed_solver()
+    asked = []
+    solve_last = solver._linear.solve_last
+
+    def recording(rhs, **kwargs):
+        asked.append(kwargs)
+        return solve_last(rhs, **kwargs)
+
+    monkeypatch.setattr(solver._linear, "solve_last", recording)
+    Q = solver.poses[0].copy()
+    Q[2, 3] -= 0.05
+    solver.solve_frame([Q])
+    tol = solver.settings.newton_tol_mm
+    low, high = newton.ESTIMATE_REFINE_BAND
+    assert asked and all(kw.keys() == {"exact_below", "refine_above"} for kw in asked)
+    assert all(kw["refine_above"] == pytest.approx(low * tol) for kw in asked)
+    assert all(high * tol * (1 - 1e-12) <= kw["exact_below"] <= newton.ESTIMATE_REFINED_BELOW * tol * (1 + 1e-12)
+               for kw in asked)
 
 
 def test_contact_outside_the_indenters_box_makes_no_query():

@@ -28,8 +28,9 @@ from transtac_sim.physics.device_linear import DeviceSolves, DeviceWork
 from transtac_sim.physics.host_factorisation import cholmod_module, factorise, pcg, sparsity_pattern
 
 #: the direct path's step estimate (``solve_last``) is solved to this relative residual first, and on to the one asked
-#: for only where it is below ``exact_below`` (where the caller's convergence test reads its length): on the tiny
-#: press fixture (2-core CPU) 24 instead of 31 ms per estimate, the same Newton iterations and forces
+#: for only where its length is within [``refine_above``, ``exact_below``) (where the caller's convergence test could
+#: go either way): on the tiny press fixture (2-core CPU) 24 instead of 31 ms per estimate, the same Newton iterations
+#: and forces
 ESTIMATE_RTOL = 1.0e-2
 
 

@@ -11,8 +11,8 @@ replaced each source (scripts/fem_frame_timing.py, BENCHMARKS.md ``fem_newton_it
   after the last real step. After a full step (alpha = 1) the next step is now estimated from the new
   gradient with the last Hessian (``LinearSolver.solve_last``: CG preconditioned with the kept factorisation).
 - Each (sub)step started from the last state. It now starts from the last increment scaled to this step's
-  pose increment when that lowers E and keeps det F > 0 (``_warm_start``); on a slide its contact also gives
-  friction's first lag.
+  pose increment when that lowers E and keeps det F > 0 (warm_start.py ``_warm_start``); on a slide its contact also
+  gives friction's first lag.
 - The contact stiffness raise re-solved the whole step; it now happens at convergence inside Newton and
   Newton goes on from there (``_raise_stiffness``).
 - The line search accepted steps that invert an element and the step then failed after the fact (and was
@@ -30,7 +30,8 @@ Issue 12, second pass (scripts/fem_frame_timing.py; scripts/fem_stability.py's s
   E(alpha) (within [0.1, 0.5] alpha, Nocedal & Wright 3.5), which lands nearer the minimum along the Newton
   direction when friction makes the full step overshoot.
 - Where a slide starts the last increment points the wrong way (down); the warm start also tries u_prev
-  carried along by the indenter's tangential translation (``_carried``): the dent starts where it will be.
+  carried along by the indenter's tangential translation (warm_start.py ``_carried``): the dent starts where it will
+  be.
 
 Issue 12, third pass, the device path (scripts/fem_phase_profile.py; BENCHMARKS.md ``fem_newton_variants_gpu``):
 CG was 80 % of a press-and-slide frame on an H100, 500 iterations per Newton system at its 1e-8 tolerance.
@@ -107,16 +108,19 @@ LAG_MOVE_RATIOS = {"direct": 0.1, "cg": 0.03}
 EXACT_BELOW = 100.0
 
 #: the step estimate (``LinearSolver.solve_last``) is solved loosely (device_linear.ESTIMATE_RTOL) and refined to the
-#: tight tolerance only where its length (max |x|) is within these multiples of newton_tol_mm: there the convergence
-#: test (estimate < newton_tol_mm) could go either way. Outside them the loose estimate decides it as the refined one
-#: would: on press_slide (H100) refining every estimate below 10 newton_tol_mm, as before, the refined ones were
-#: 0.91-1.98 times as long as their loose ones, and those refinements took 3,625 of the estimates' 6,351 CG iterations;
-#: with this band 8-9 estimates of about 110 are refined, the estimates take 0.6x the CG iterations and the frames
-#: 0.91x the time, with the same Newton iterations (BENCHMARKS.md ``fem_estimate_refinement_gpu``)
+#: tight tolerance only where its length (max |x|) is within these multiples of a threshold it is compared with, where
+#: the comparison could go either way: newton_tol_mm (the convergence test) and, while friction's lag may still move,
+#: the lag's threshold (``_move_lag``), the latter only below ``ESTIMATE_REFINED_BELOW`` (``_estimate_band``).
+#: Elsewhere the loose length decides as the refined one would: on press_slide (H100) the refined estimates were
+#: 0.91-1.98 times as long as their loose ones. Before, every estimate below ESTIMATE_REFINED_BELOW was refined, which
+#: took 3,625 of the estimates' 6,351 CG iterations; with the band 12-15 of 105-110 estimates are refined, the estimates
+#: take 0.66-0.72x the CG iterations and the frames 0.85-0.88x the time, with the same Newton iterations and the markers
+#: as close to the lag-converged ones as before (BENCHMARKS.md ``fem_estimate_refinement_gpu``). A loose estimate varies
+#: from run to run with the device CG's round-off, and on a hard case (the stability table's flat punch rim) the state
+#: then ends on another of the step's equilibria.
 ESTIMATE_REFINE_BAND = (0.25, 2.0)
-
-#: where an indenter moves away from the gel, u_prev scaled by each of these is a warm-start guess (``_warm_start``)
-UNLOAD_SCALES = (0.25, 0.5, 0.75)
+#: (multiples of newton_tol_mm) no estimate is refined above this length: the rule before the band
+ESTIMATE_REFINED_BELOW = 10.0
 
 
 class NewtonSteps:
@@ -153,10 +157,11 @@ class NewtonSteps:
             if g_norm == 0.0:  # e.g. nothing touches yet: already at equilibrium
                 return True, iterations, "", 0.0
             g_first = g_first or g_norm
-            estimate = self._linear.solve_last(rhs, exact_below=ESTIMATE_REFINE_BAND[1] * tol,
-                                               refine_above=ESTIMATE_REFINE_BAND[0] * tol) if full_step else None
+            lag_open = friction and lags < s.friction_lag_moves
+            change = self._lag_change() if full_step and lag_open else None
+            estimate = self._linear.solve_last(rhs, **self._estimate_band(change)) if full_step else None
             remaining = max_abs(estimate) if estimate is not None else np.inf
-            if friction and lags < s.friction_lag_moves and self._move_lag(ind, remaining):
+            if lag_open and self._move_lag(ind, remaining, change):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                 continue
             if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
@@ -245,17 +250,38 @@ class NewtonSteps:
         the host by LU where CHOLMOD fails, on the device with a Levenberg-Marquardt shift where CG fails (device_linear.py)."""
         return ((1.0, EXACT), (1.0, CLAMPED), (0.0, CLAMPED))
 
-    def _move_lag(self, ind, remaining: float) -> bool:
+    def _lag_change(self) -> float:
+        """max |u - u_lag| (mm): how far friction's lag is from the current u."""
+        return max_abs(self.u.dof_values, self.u_lag.dof_values)
+
+    def _lag_threshold(self, change: float) -> float | None:
+        """The remaining step (mm) below which friction's lag moves for a lag ``change`` (mm) away (``_move_lag``), or
+        None where it does not move whatever the step (the change is below 10 newton_tol_mm)."""
+        tol = self.settings.newton_tol_mm
+        return None if change < 10.0 * tol else max(tol, LAG_MOVE_RATIOS[self._linear.method] * change)
+
+    def _estimate_band(self, change: float | None) -> dict[str, float]:
+        """``solve_last``'s band (mm) within which the step estimate is refined (``ESTIMATE_REFINE_BAND``): about
+        newton_tol_mm and, where friction's lag may move (``change``: its distance from u, mm; None: it may not),
+        about the lag's threshold as far as that lies below ``ESTIMATE_REFINED_BELOW`` (one interval covering both)."""
+        tol = self.settings.newton_tol_mm
+        low, high = ESTIMATE_REFINE_BAND
+        top = high * tol
+        threshold = self._lag_threshold(change) if change is not None else None
+        if threshold is not None and low * threshold < ESTIMATE_REFINED_BELOW * tol:
+            top = max(top, min(ESTIMATE_REFINED_BELOW * tol, high * threshold))
+        return {"exact_below": top, "refine_above": low * tol}
+
+    def _move_lag(self, ind, remaining: float, change: float | None = None) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
         u: the estimated remaining step ``remaining`` (mm) is below max(newton_tol_mm, r x |u - u_lag|), r the linear
-        solver's ``LAG_MOVE_RATIOS``,
-        and |u - u_lag| >= 10 newton_tol_mm. True if moved (an inexact fixed point on the lag: each lag is solved
-        only as far as the next one makes worth it, instead of to the tolerance)."""
-        tol = self.settings.newton_tol_mm
-        if remaining == np.inf:  # no step estimate: not closer than any change (the usual case; no device read)
+        solver's ``LAG_MOVE_RATIOS``, and |u - u_lag| >= 10 newton_tol_mm (``_lag_threshold``; ``change``: |u - u_lag|
+        where the caller has it). True if moved (an inexact fixed point on the lag: each lag is solved only as far as
+        the next one makes worth it, instead of to the tolerance)."""
+        if remaining == np.inf:  # no step estimate: not closer than any change (no device read)
             return False
-        change = max_abs(self.u.dof_values, self.u_lag.dof_values)
-        if change < 10.0 * tol or remaining >= max(tol, LAG_MOVE_RATIOS[self._linear.method] * change):
+        threshold = self._lag_threshold(change if change is not None else self._lag_change())
+        if threshold is None or remaining >= threshold:
             return False
         wp.copy(self.u_lag.dof_values, self.u.dof_values)
         self._update_lag(ind)
@@ -286,70 +312,6 @@ class NewtonSteps:
             parts += [B[:3, 3] - A[:3, 3], turn]
         return np.concatenate(parts)
 
-    def _warm_start(self, ind, step: np.ndarray) -> bool:
-        """Starts Newton from the lowest-energy guess with det F > 0 among u_prev and
-
-        - u_prev + s du_last: the last converged increment scaled to this step's pose increment
-          (s = <step, step_last> / |step_last|^2, clipped to [0, 1]): on a steady press or slide this starts
-          Newton next to the solution;
-        - u_prev carried along by the indenter's tangential (x, y) translation d, u(X) = u_prev(X - d) (one
-          indenter only): the dent moves with the indenter where a slide starts (the step turns from a press,
-          so the last increment points the wrong way);
-        - u_prev scaled by ``UNLOAD_SCALES`` where an indenter moves away from the gel (+z: the contact surface
-          faces +z): on a release the gel springs back towards its rest shape, and neither guess above points
-          there (BENCHMARKS.md ``fem_unload_warm_start``).
-
-        True if a guess was taken and the largest penetration there is within 2x the last step's plus
-        ``penetration_tol_mm`` (a guess whose contact can serve as friction's first lag)."""
-        wp.copy(self.u.dof_values, self.u_prev.dof_values)
-        best_e = self._energy(self.u, ind)
-        pen_last = self._increment[2] if self._increment is not None else 0.0
-        taken = False
-        for guess in self._guesses(step):
-            wp.copy(self._u_try.dof_values, guess)
-            if self._min_det(self._u_try) > 0.0:
-                e = self._energy(self._u_try, ind)
-                if e < best_e:
-                    wp.copy(self.u.dof_values, self._u_try.dof_values)
-                    best_e, taken = e, True
-        if not taken:
-            return False
-        self.stats["warm_starts"] += 1
-        return self._max_penetration(ind) <= 2.0 * pen_last + self.settings.penetration_tol_mm
-
-    def _guesses(self, step: np.ndarray):
-        """The warm start's candidate dof values (see ``_warm_start``)."""
-        if self._increment is not None:
-            du_last, step_last, _ = self._increment
-            norm2 = float(np.dot(step_last, step_last))
-            scale = float(np.clip(np.dot(step, step_last) / norm2, 0.0, 1.0)) if norm2 > 0.0 else 0.0
-            if scale > 0.0:
-                guess = wp.clone(self.u_prev.dof_values)
-                fem.linalg.array_axpy(x=du_last, y=guess, alpha=scale)
-                yield guess
-        shift = np.array([step[0], step[1], 0.0]) if len(self.indenters) == 1 else np.zeros(3)
-        if np.linalg.norm(shift) > self.settings.newton_tol_mm:
-            yield self._carried(shift)
-        if np.any(step.reshape(-1, 6)[:, 2] > self.settings.newton_tol_mm):  # some indenter lifts off the gel
-            for scale in UNLOAD_SCALES:
-                guess = wp.zeros_like(self.u_prev.dof_values)
-                fem.linalg.array_axpy(x=self.u_prev.dof_values, y=guess, alpha=scale, beta=0.0)
-                yield guess
-
-    def _carried(self, shift: np.ndarray) -> wp.array:
-        """Dof values of u_prev(X - shift) (u_prev itself at nodes whose X - shift is outside the gel, and 0 on the
-        fixed components), found on the device: each node's X - shift is looked up in the tet mesh's BVH
-        (``fem.lookup``; built on first use) and u_prev evaluated there."""
-        if self._geo.bvh_id(self.device) == 0:
-            self._geo.build_bvh(self.device)
-        out = wp.empty_like(self.u_prev.dof_values)
-        fem.interpolate(_carried_form, dest=out, at=self._cells, dim=len(out), fields={"u": self.u_prev},
-                        values={"nodes": self._node_positions, "shift": wp.vec3d(*shift),
-                                "kept": self.u_prev.dof_values, "tol": 1.0e-8})
-        values = out.numpy()
-        values[self._fixed_nodes] = 0.0
-        return wp.array(values, dtype=wp.vec3d, device=self.device)
-
     def _solve_step(self, poses, prev_poses, may_stall: bool = False) -> tuple[bool, int, str, float]:
         """One (sub)step from u_prev (converged at ``prev_poses``) to ``poses``; returns ``_newton``'s result
         (``may_stall``: see there)."""
@@ -370,17 +332,3 @@ class NewtonSteps:
             fem.linalg.array_axpy(x=self.u_prev.dof_values, y=du, alpha=-1.0)
             self._increment = (du, step, pen)
         return ok, iterations, why, pen
-
-
-@fem.integrand
-def _carried_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, nodes: wp.array(dtype=wp.vec3d),
-                  shift: wp.vec3d, kept: wp.array(dtype=wp.vec3d), tol: wp.float64):
-    """u at nodes[i] - shift where that point lies in the gel (within tol mm of where the lookup lands), else
-    kept[i]."""
-    y = nodes[s.qp_index] - shift
-    found = fem.lookup(domain, y)
-    value = kept[s.qp_index]
-    if found.element_index != fem.NULL_ELEMENT_INDEX:
-        if wp.length(fem.position(domain, found) - y) <= tol:
-            value = u(found)
-    return value

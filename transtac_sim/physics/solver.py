@@ -44,6 +44,7 @@ from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solv
     SolverRecord,
     SolverSettings,
 )
+from transtac_sim.physics.warm_start import WarmStart
 
 
 def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
@@ -54,7 +55,7 @@ def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return P
 
 
-class QuasiStaticSolver(Assembly, NewtonSteps, PointDisplacement):
+class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, PointDisplacement):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
