@@ -246,8 +246,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if estimates:
         refined = [e for e in estimates if len(e) == 2]
         ratios = [e[1][1] / e[0][1] for e in refined if e[0][1] > 0.0]
-        band = getattr(newton, "ESTIMATE_REFINE_BAND", "below 10")  # (an older tree refines every one below 10)
-        print(f"device step estimates refined to the tight tolerance (band {band} newton_tol): "
+        band = getattr(newton, "ESTIMATE_REFINE_BAND", None)  # (an older tree refines every one below 10 newton_tol)
+        rule = f"band {band} x the threshold compared with" if band else "every one below 10 newton_tol"
+        print(f"device step estimates refined to the tight tolerance ({rule}): "
               f"{len(refined)} of {len(estimates)}, the loose solves {sum(e[0][0] for e in estimates)} CG iterations, "
               f"the refinements {sum(e[1][0] for e in refined)}; refined length / loose length "
               + (f"{min(ratios):.3f}-{max(ratios):.3f}" if ratios else "-"))

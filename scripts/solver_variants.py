@@ -9,7 +9,11 @@ import functools
 import typer
 
 from transtac_sim.physics import device_linear, newton, settings
-from transtac_sim.physics.warm_start import WarmStart
+
+try:
+    from transtac_sim.physics.warm_start import WarmStart
+except ImportError:  # an older package tree through PYTHONPATH (a before/after comparison): newton.py had it
+    from transtac_sim.physics.newton import NewtonSteps as WarmStart
 
 WARM_STARTS = ("all", "extrapolated", "none")
 

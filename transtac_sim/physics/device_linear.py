@@ -121,10 +121,9 @@ SHIFTS = (1.0e-2, 1.0, 1.0e2)
 COARSE_REFRESH_STEPS = 10
 
 #: the step estimate (``solve_last``; newton.py) is solved to this relative residual, and on to ``cg_tol`` only where its
-#: length is within the caller's [``refine_above``, ``exact_below``) (newton.py ``ESTIMATE_REFINE_BAND``: where Newton's
-#: convergence test could go either way); the first stage in at most ``ESTIMATE_CAP_FACTOR`` times the last converged
-#: system's CG iterations. Elsewhere Newton compares it with friction's lag change (newton.py ``_move_lag``), which a
-#: loose estimate decides as well. Before, it was solved to 1e-3 within 1x those
+#: length is within the caller's [``refine_above``, ``exact_below``) (newton.py ``_estimate_band``: about the threshold
+#: Newton compares it with, where the comparison could go either way); the first stage in at most
+#: ``ESTIMATE_CAP_FACTOR`` times the last converged system's CG iterations. Before, it was solved to 1e-3 within 1x those
 #: iterations, which a system solved to Newton's loose forcing term did not reach: 58 of 103 estimates on the tiny
 #: mesh with press_slide's motion (this CPU, the device path) ran to that cap and were thrown away, 45 % of the CG
 #: iterations of the frames (BENCHMARKS.md ``fem_step_estimate``).

@@ -28,9 +28,9 @@ from transtac_sim.physics.device_linear import DeviceSolves, DeviceWork
 from transtac_sim.physics.host_factorisation import cholmod_module, factorise, pcg, sparsity_pattern
 
 #: the direct path's step estimate (``solve_last``) is solved to this relative residual first, and on to the one asked
-#: for only where its length is within [``refine_above``, ``exact_below``) (where the caller's convergence test could
-#: go either way): on the tiny press fixture (2-core CPU) 24 instead of 31 ms per estimate, the same Newton iterations
-#: and forces
+#: for only where its length is within [``refine_above``, ``exact_below``) (where the caller's comparison with a
+#: threshold could go either way, newton.py ``_estimate_band``): on the tiny press fixture (2-core CPU) 24 instead of
+#: 31 ms per estimate, the same Newton iterations and forces
 ESTIMATE_RTOL = 1.0e-2
 
 
@@ -189,8 +189,8 @@ class LinearSolver(DeviceSolves):
         path: to ``ESTIMATE_RTOL``, then on to ``rtol``) or with the kept preconditioner on the device (CG path: to
         device_linear.ESTIMATE_RTOL, then on to ``cg_tol``; ``rtol`` is the direct path's only). It goes on to the
         tighter tolerance only where the loose solution's max |x| is within [``refine_above``, ``exact_below``) mm:
-        an early-stopped CG solution is mostly shorter than the exact one, and the caller tests convergence on its length
-        (newton.py ``ESTIMATE_REFINE_BAND``). A new array on the device with 0 on the fixed components, or None (no
+        an early-stopped CG solution is mostly shorter than the exact one, and the caller compares its length with a
+        threshold (newton.py ``_estimate_band``). A new array on the device with 0 on the fixed components, or None (no
         system yet, or no convergence within the iterations allowed)."""
         if self.method == "cg":
             return self._solve_last_cg(rhs, exact_below, refine_above)

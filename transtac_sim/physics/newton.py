@@ -108,13 +108,14 @@ LAG_MOVE_RATIOS = {"direct": 0.1, "cg": 0.03}
 EXACT_BELOW = 100.0
 
 #: the step estimate (``LinearSolver.solve_last``) is solved loosely (device_linear.ESTIMATE_RTOL) and refined to the
-#: tight tolerance only where its length (max |x|) is within these multiples of a threshold it is compared with, where
-#: the comparison could go either way: newton_tol_mm (the convergence test) and, while friction's lag may still move,
-#: the lag's threshold (``_move_lag``), the latter only below ``ESTIMATE_REFINED_BELOW`` (``_estimate_band``).
-#: Elsewhere the loose length decides as the refined one would: on press_slide (H100) the refined estimates were
-#: 0.91-1.98 times as long as their loose ones. Before, every estimate below ESTIMATE_REFINED_BELOW was refined, which
-#: took 3,625 of the estimates' 6,351 CG iterations; with the band 12-15 of 105-110 estimates are refined, the estimates
-#: take 0.66-0.72x the CG iterations and the frames 0.85-0.88x the time, with the same Newton iterations and the markers
+#: tight tolerance only where its length (max |x|) is within these multiples of the threshold it is compared with, where
+#: the comparison could go either way: friction's lag threshold (``_move_lag``) where the lag may still move, otherwise
+#: newton_tol_mm (the convergence test); and, as before, never above ``ESTIMATE_REFINED_BELOW`` (``_estimate_band``).
+#: Below the band the loose length decides as the refined one would: on press_slide (H100) the refined estimates were
+#: 0.91-1.98 times as long as their loose ones (above ESTIMATE_REFINED_BELOW, where a lag threshold can lie, the loose
+#: length decides as it always did). Before, every estimate below ESTIMATE_REFINED_BELOW was refined, which
+#: took 3,625 of the estimates' 6,351 CG iterations; with the band 4-5 of 106-109 estimates are refined, the estimates
+#: take 0.49-0.53x the CG iterations and the frames 0.88-0.95x the time, with the same Newton iterations and the markers
 #: as close to the lag-converged ones as before (BENCHMARKS.md ``fem_estimate_refinement_gpu``). A loose estimate varies
 #: from run to run with the device CG's round-off, and on a hard case (the stability table's flat punch rim) the state
 #: then ends on another of the step's equilibria.
@@ -137,7 +138,7 @@ class NewtonSteps:
         when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
         was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
         the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation, refined to
-        the tight tolerance only where its length is near newton_tol_mm, ``ESTIMATE_REFINE_BAND``; not
+        the tight tolerance only where its length is near the threshold it is compared with, ``_estimate_band``; not
         after a lag move made on an estimate, where the step is seldom converged), otherwise it is the full Newton
         step itself; the estimate also starts the next system's solve on the host. The linear solver solves each
         system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within
@@ -261,16 +262,16 @@ class NewtonSteps:
         return None if change < 10.0 * tol else max(tol, LAG_MOVE_RATIOS[self._linear.method] * change)
 
     def _estimate_band(self, change: float | None) -> dict[str, float]:
-        """``solve_last``'s band (mm) within which the step estimate is refined (``ESTIMATE_REFINE_BAND``): about
-        newton_tol_mm and, where friction's lag may move (``change``: its distance from u, mm; None: it may not),
-        about the lag's threshold as far as that lies below ``ESTIMATE_REFINED_BELOW`` (one interval covering both)."""
+        """``solve_last``'s band (mm) within which the step estimate is refined (``ESTIMATE_REFINE_BAND`` times the one
+        threshold its length is compared with), below ``ESTIMATE_REFINED_BELOW`` newton_tol_mm. Where friction's lag
+        may move (``change``: its distance from u, mm, >= 10 newton_tol_mm; None: it may not), that is the lag's
+        threshold (``_move_lag``, at least newton_tol_mm): an estimate below it moves the lag before the convergence
+        test is reached. Otherwise it is newton_tol_mm (the convergence test). An empty band refines nothing."""
         tol = self.settings.newton_tol_mm
         low, high = ESTIMATE_REFINE_BAND
-        top = high * tol
         threshold = self._lag_threshold(change) if change is not None else None
-        if threshold is not None and low * threshold < ESTIMATE_REFINED_BELOW * tol:
-            top = max(top, min(ESTIMATE_REFINED_BELOW * tol, high * threshold))
-        return {"exact_below": top, "refine_above": low * tol}
+        compared = threshold if threshold is not None else tol
+        return {"refine_above": low * compared, "exact_below": min(ESTIMATE_REFINED_BELOW * tol, high * compared)}
 
     def _move_lag(self, ind, remaining: float, change: float | None = None) -> bool:
         """Moves friction's lag to the current u when Newton is closer to this lag's solution than the lag is to
