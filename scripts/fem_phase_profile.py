@@ -44,6 +44,7 @@ import functools
 import statistics
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -196,7 +197,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
 
     QuasiStaticSolver._solve_step = noting_failures
     frame_seconds, frame_iterations = [], []
-    estimates = _record_estimates()
+    estimates, stop_recording = _record_estimates()
     try:
         for f in simulate_frames(setup, frames, StageClock()):
             frame_seconds.append(f.solver["seconds"])
@@ -219,7 +220,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         for cls, name, original in originals:
             setattr(cls, name, original)
         QuasiStaticSolver._solve_step = solve_step
-        device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg = estimates.originals
+        stop_recording()
     if save_markers:
         np.savez(save_markers, markers=np.stack(markers))
     counted = frame_seconds[1:] if skip_first and len(frame_seconds) > 1 else frame_seconds
@@ -266,18 +267,12 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
               f"total {sum(li)} over {len(li)} solves")
 
 
-class _Estimates(list):
-    """The device step estimates of a run: per estimate, (CG iterations, max |x| in mm) of its loose solve and, where it
-    was refined, of the refinement; ``originals`` are the functions ``_record_estimates`` replaced."""
-
-    originals: tuple
-
-
-def _record_estimates() -> _Estimates:
-    """Records each device step estimate's CG solves (device_linear.py ``_solve_last_cg``, ``definite_cg``)."""
-    estimates = _Estimates()
+def _record_estimates() -> tuple[list, Callable[[], None]]:
+    """Records each device step estimate's CG solves (device_linear.py ``_solve_last_cg``, ``definite_cg``): (the list
+    they go into, per estimate (CG iterations, max |x| in mm) of its loose solve and, where it was refined, of the
+    refinement; the function that puts the originals back)."""
+    estimates: list = []
     solve_last_cg, cg_solve = device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg
-    estimates.originals = (solve_last_cg, cg_solve)
     current: list | None = None
 
     def recording_solve(*args, **kwargs):
@@ -296,9 +291,12 @@ def _record_estimates() -> _Estimates:
                 estimates.append(tuple(current))
             current = None
 
+    def stop() -> None:
+        device_linear.DeviceSolves._solve_last_cg, device_linear.definite_cg = solve_last_cg, cg_solve
+
     device_linear.DeviceSolves._solve_last_cg = recording_estimate
     device_linear.definite_cg = recording_solve
-    return estimates
+    return estimates, stop
 
 
 def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None):
