@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import typer
 
 from transtac_sim.physics import device_linear, newton, settings
@@ -15,14 +16,15 @@ try:
 except ImportError:  # an older package tree through PYTHONPATH (a before/after comparison): newton.py had it
     from transtac_sim.physics.newton import NewtonSteps as WarmStart
 
-WARM_STARTS = ("all", "extrapolated", "none")
+WARM_STARTS = ("all", "extrapolated", "none", "carried")
 
 
 def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
           lag_move_ratio: float | None = None, estimate_rtol: float = device_linear.ESTIMATE_RTOL,
           estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR, estimate_band: str | None = None) -> None:
     """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not the
-    slide's carried one), or none (the last converged state); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
+    slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against the
+    last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``: the device's step estimate
     (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``: newton.ESTIMATE_REFINE_BAND as "LO,HI"
     (None: as it is)."""
@@ -35,11 +37,24 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
         newton.LAG_MOVE_RATIOS = dict.fromkeys(newton.LAG_MOVE_RATIOS, lag_move_ratio)
     device_linear.ESTIMATE_RTOL = estimate_rtol
     device_linear.ESTIMATE_CAP_FACTOR = estimate_cap_factor
-    if warm_start != "all":
+    if warm_start == "carried":
+        WarmStart._guesses = functools.partialmethod(_carried_on_slides, WarmStart._guesses)
+    elif warm_start != "all":
         guesses = WarmStart._guesses
         WarmStart._carried = lambda self, shift: None
         WarmStart._guesses = lambda self, step: (
             [] if warm_start == "none" else [g for g in guesses(self, step) if g is not None])
+
+
+def _carried_on_slides(self, guesses, step: np.ndarray):
+    """The warm start's guesses with ``--warm-start carried``: where the step moves one indenter tangentially and not
+    away from the gel (a slide; the conditions of warm_start.py ``_guesses``), the carried guess alone; otherwise
+    ``guesses(self, step)``."""
+    tol = self.settings.newton_tol_mm
+    shift = np.array([step[0], step[1], 0.0])
+    if len(self.indenters) == 1 and np.linalg.norm(shift) > tol and step[2] <= tol:
+        return [self._carried(shift)]
+    return list(guesses(self, step))
 
 
 def _band(text: str) -> tuple[float, float]:
@@ -72,7 +87,7 @@ def friction_memory() -> bool:
 
 
 WARM_START_OPTION = typer.Option("all", help="the guesses a (sub)step may start from: all, extrapolated (no carried "
-                                 "guess on slides) or none")
+                                 "guess on slides), none, or carried (on slides the carried guess alone)")
 EXACT_BELOW_OPTION = typer.Option(newton.EXACT_BELOW, min=0.0, help="newton.EXACT_BELOW (multiples of newton_tol_mm)")
 LAG_MOVE_RATIO_OPTION = typer.Option(None, min=0.0, help="replace newton.LAG_MOVE_RATIOS (of both linear solvers; "
                                      f"default {newton.LAG_MOVE_RATIOS})")

@@ -11,6 +11,14 @@ each frame its seconds, Newton iterations, sub-steps, residual (N) and Fz (N); e
 its reason, and each host solve its seconds; with ``--newton``, each Newton system (which Hessian, its outcome, its
 linear iterations) and at the end a table of where each frame's Newton iterations went: before friction's first lag
 move (of which on the clamped or Gauss-Newton Hessian, where the exact one was not positive definite) and after it;
+``--warm-start-distance`` prints, after each load sub-step, how far its start and each warm-start guess
+(warm_start.py ``_guesses``, in the order made) lay from the solution Newton reached: the 90th and 99th percentile and the
+largest distance over the nodes (mm); ``--warm-start`` picks the guesses (scripts/solver_variants.py).
+``--curvature`` (device path): where the device CG finds the exact Hessian of a Newton system not positive definite,
+the curvature p . H p / |p|^2 (N/mm) of the CG direction p where it stopped (p . A p <= 0, A the matrix rounded to
+float32; a stop at r . M r <= 0 is only named), in float64 with the exact, the clamped and the
+Gauss-Newton Hessian (elasticity.py), and where p lies: the share of |p|^2 on its 10 largest nodes, and those nodes'
+depth below the top surface and distance from the first indenter's axis (mm).
 ``kill -USR1 <pid>`` prints the main thread's Python stack to stderr (``faulthandler``; its periodic dump from a
 watchdog thread crashed this process in libpython twice, so it is not used). The gel mesh comes from the
 mesh cache (``TRANSTAC_SIM_CACHE``): a mesh built anew elsewhere differs, and so do the frames (README, Determinism).
@@ -27,11 +35,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+import solver_variants
 import typer
+import warp as wp
+from warp.sparse import bsr_mv
 
 from transtac_sim.config import load_scene
 from transtac_sim.physics import QuasiStaticSolver, device_linear, linear
+from transtac_sim.physics.device_linear import DeviceSolves
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
+from transtac_sim.physics.warm_start import WarmStart
 
 HESSIANS = {(1.0, EXACT): "exact", (1.0, CLAMPED): "clamped", (0.0, CLAMPED): "Gauss-Newton"}
 
@@ -104,6 +117,91 @@ def _trace_newton() -> None:
     linear.LinearSolver.solve = logged_solve
 
 
+def _trace_warm_start() -> None:
+    """Keeps each sub-step's warm-start guesses and start, and prints their distances from the sub-step's solution."""
+    guesses, start, solve_step = WarmStart._guesses, WarmStart._warm_start, QuasiStaticSolver._solve_step
+    kept = {}
+
+    def kept_guesses(self, step):
+        for guess in guesses(self, step):
+            kept["guesses"].append(np.array(guess.numpy()))  # a copy: on the CPU .numpy() is a view
+            yield guess
+
+    def kept_start(self, ind, step):
+        kept.update(guesses=[], prev=np.array(self.u_prev.dof_values.numpy()))
+        taken = start(self, ind, step)
+        kept["start"] = np.array(self.u.dof_values.numpy())
+        return taken
+
+    def distances(self, poses, *args, **kwargs):
+        kept.clear()
+        result = solve_step(self, poses, *args, **kwargs)
+        if "start" in kept and result[0]:
+            u = self.u.dof_values.numpy()
+
+            def far(v):
+                d = np.linalg.norm(v - u, axis=1)
+                return f"{np.quantile(d, 0.9):.3f} / {np.quantile(d, 0.99):.3f} / {d.max():.3f}"
+
+            print(f"    from the solution (mm, nodes' 90th / 99th percentile / largest): last state {far(kept['prev'])}, "
+                  f"start {far(kept['start'])}, guesses " + ", ".join(far(g) for g in kept["guesses"]), flush=True)
+        return result
+
+    WarmStart._guesses = kept_guesses
+    WarmStart._warm_start = kept_start
+    QuasiStaticSolver._solve_step = distances
+
+
+def _trace_curvature() -> None:
+    """Prints the curvature of the device CG's direction where it stops on the exact Hessian (``--curvature``)."""
+    hessian, solve_cg, cg = QuasiStaticSolver._hessian, DeviceSolves._solve_cg, device_linear.definite_cg
+    last = {}
+
+    def kept_hessian(self, ind, geometric, clamp=CLAMPED):
+        last.update(solver=self, ind=ind, exact=(geometric, clamp) == (1.0, EXACT))
+        return hessian(self, ind, geometric, clamp)
+
+    def kept_matrix(self, H, *args, **kwargs):  # a Newton system's solve (the step estimate's CG is not one)
+        last["H"] = H
+        try:
+            return solve_cg(self, H, *args, **kwargs)
+        finally:
+            del last["H"]
+
+    def curvature(H, p: wp.array, P: np.ndarray) -> float:
+        Hp = wp.zeros_like(p)
+        bsr_mv(H, p, Hp, alpha=1.0, beta=0.0)
+        return float((P * Hp.numpy()).sum() / (P * P).sum())
+
+    def measured_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None):
+        result = cg(A, b, x, rtol, maxiter, M, atol, workspace, coarse)
+        if result.not_definite and last.get("exact") and "H" in last and workspace is not None:
+            solver, p = last["solver"], workspace.p
+            P = p.numpy()
+            if (P * workspace.q.numpy()).sum() > 0.0:  # q = A p: it stopped at r . M r <= 0, not on A's curvature
+                print("    CG stopped where its preconditioner is not positive definite", flush=True)
+                return result
+            values = {"exact": curvature(last["H"], p, P)}
+            for name, geometric in (("clamped", 1.0), ("Gauss-Newton", 0.0)):  # the next rungs assemble anew anyway
+                values[name] = curvature(hessian(solver, last["ind"], geometric, CLAMPED), p, P)
+            n2 = (P * P).sum(axis=1)
+            top = np.argsort(-n2)[:10]
+            nodes = solver._node_positions.numpy()
+            X = nodes[top]
+            axis = solver.poses[0][:2, 3]
+            print(f"    p . H p / |p|^2 (N/mm) where CG stopped after {result.iterations} iterations: "
+                  + ", ".join(f"{k} {v:.3g}" for k, v in values.items())
+                  + f"; its 10 largest nodes carry {n2[top].sum() / n2.sum():.0%} of |p|^2, at depth "
+                  f"{np.round(nodes[:, 2].max() - X[:, 2], 2).tolist()} mm, "
+                  f"{np.round(np.linalg.norm(X[:, :2] - axis, axis=1), 2).tolist()} mm from the indenter's axis",
+                  flush=True)
+        return result
+
+    QuasiStaticSolver._hessian = kept_hessian
+    DeviceSolves._solve_cg = kept_matrix
+    device_linear.definite_cg = measured_cg
+
+
 def _trace_solver() -> None:
     """Prints, as they happen: each frame, each load sub-step, each device CG that stopped without converging (why,
     after how many iterations) and each host (direct) solve with its seconds."""
@@ -153,10 +251,20 @@ def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = type
          linear_solver: str = typer.Option("auto", help="auto, direct or cg"),
          newton: bool = typer.Option(False, help="also print each Newton system (its Hessian and outcome), and at the "
                                      "end where each frame's Newton steps went"),
-         friction_lag_moves: int | None = typer.Option(None, min=1, help="replace [physics] friction_lag_moves")) -> None:
+         friction_lag_moves: int | None = typer.Option(None, min=1, help="replace [physics] friction_lag_moves"),
+         warm_start_distance: bool = typer.Option(False, help="print how far each sub-step's start and warm-start "
+                                                  "guesses lay from its solution"),
+         warm_start: str = solver_variants.WARM_START_OPTION,
+         curvature: bool = typer.Option(False, help="where the device CG finds the exact Hessian not positive "
+                                        "definite, print its direction's curvature and where it lies")) -> None:
     if mode not in ("physics", "worker"):
         raise typer.BadParameter(f"--mode must be physics or worker, got {mode!r}")
     faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=False)
+    solver_variants.apply(warm_start)
+    if warm_start_distance:
+        _trace_warm_start()
+    if curvature:  # before --newton's wrappers: its extra Hessians are then not logged as Newton's
+        _trace_curvature()
     _trace_solver()
     if newton:
         _trace_newton()

@@ -1,32 +1,44 @@
-"""scripts/trace_sequence.py --newton: its count of each frame's Newton steps agrees with the solver's own record."""
+"""scripts/trace_sequence.py: --newton's count of each frame's Newton steps agrees with the solver's own record;
+--warm-start-distance measures the distances it prints; --curvature's directions have the curvature the Hessians'
+construction gives them (elasticity.py)."""
 
 import re
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import trace_sequence  # noqa: E402
 
 from transtac_sim.physics import QuasiStaticSolver, device_linear, linear  # noqa: E402
+from transtac_sim.physics.device_linear import DeviceSolves  # noqa: E402
+from transtac_sim.physics.warm_start import WarmStart  # noqa: E402
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
+NUMBER = r"(-?[\d.]+(?:e[-+]\d+)?)"
 
 
-@pytest.mark.parametrize("lag_moves", [1, 4])
-def test_newton_steps_are_split_at_the_first_lag_move(monkeypatch, capsys, lag_moves):
-    # the script patches the solver's methods for good: register them so that they are put back after the test
+def _restore_after(monkeypatch):
+    """The script patches the solver's methods for good: register them so that they are put back after the test."""
     for owner, names in ((QuasiStaticSolver, ("_hessian", "_move_lag", "_raise_stiffness", "solve_frame",
                                               "_solve_step")),
-                         (linear.LinearSolver, ("solve", "_solve_direct")), (device_linear, ("definite_cg",))):
+                         (linear.LinearSolver, ("solve", "_solve_direct")), (device_linear, ("definite_cg",)),
+                         (DeviceSolves, ("_solve_cg",)), (WarmStart, ("_guesses", "_warm_start", "_carried"))):
         for name in names:
             monkeypatch.setattr(owner, name, getattr(owner, name))
     monkeypatch.setattr(trace_sequence, "ANATOMY", [trace_sequence._new_frame_counts()])
     monkeypatch.setattr(trace_sequence.faulthandler, "register", lambda *args, **kwargs: None)  # captured stderr
+
+
+@pytest.mark.parametrize("lag_moves", [1, 4])
+def test_newton_steps_are_split_at_the_first_lag_move(monkeypatch, capsys, lag_moves):
+    _restore_after(monkeypatch)
     # the press-and-slide fixture's first three frames: a first touch and two presses with friction 0.5
     trace_sequence.main(FIXTURES / "tiny_press_slide.toml", sequence=0, frames=3, mode="physics",
-                        linear_solver="cg", newton=True, friction_lag_moves=lag_moves)
+                        linear_solver="cg", newton=True, friction_lag_moves=lag_moves, warm_start_distance=False,
+                        warm_start="all", curvature=False)
     out = capsys.readouterr().out
     iterations = [int(n) for n in re.findall(r"^frame \d+: [\d.]+ s, (\d+) Newton iterations", out, re.M)]
     moves = len(re.findall(r"friction's lag moved", out))
@@ -40,3 +52,59 @@ def test_newton_steps_are_split_at_the_first_lag_move(monkeypatch, capsys, lag_m
     assert sum(r[4] for r in rows[:3]) == moves and moves >= 2  # the presses move friction's lag
     assert rows[3] == [sum(r[k] for r in rows[1:3]) for k in range(5)]
     assert rows[1][3] > 0  # a press's lag move costs Newton steps after it
+
+
+def test_warm_start_distances_and_curvatures(monkeypatch, capsys):
+    _restore_after(monkeypatch)
+    solutions = []  # each frame's converged dof values (one sub-step per frame here)
+    solve_frame = QuasiStaticSolver.solve_frame
+
+    def kept(self, poses):
+        result = solve_frame(self, poses)
+        solutions.append(self.u.dof_values.numpy().copy())
+        return result
+
+    monkeypatch.setattr(QuasiStaticSolver, "solve_frame", kept)
+    # frames 0-5 of the press-and-slide fixture: frames 4 and 5 slide (the carried guess alone: --warm-start carried)
+    trace_sequence.main(FIXTURES / "tiny_press_slide.toml", sequence=0, frames=6, mode="physics",
+                        linear_solver="cg", newton=True, friction_lag_moves=None, warm_start_distance=True,
+                        warm_start="carried", curvature=True)
+    out = capsys.readouterr().out
+    lines = re.findall(r"^    from the solution .*$", out, re.M)
+    assert len(lines) == 6
+    for frame, line in enumerate(lines):
+        last_state, start, guesses = re.match(r".*last state ([^,]*), start ([^,]*), guesses ?(.*)$", line).groups()
+        triples = [tuple(float(v) for v in t.split(" / ")) for t in [last_state, start] + guesses.split(", ")
+                   if t]
+        assert all(q90 <= q99 <= largest for q90, q99, largest in triples)
+        assert triples[1] in [triples[0], *triples[2:]]  # the start is the last state or one of the guesses
+        if frame:  # the last state's largest distance is that of the two frames' solutions
+            change = np.linalg.norm(solutions[frame] - solutions[frame - 1], axis=1).max()
+            assert triples[0][2] == pytest.approx(change, abs=6e-4)
+    assert len(guesses.split(", ")) == 1  # frame 5 slides on: the carried guess alone ("all" makes two here)
+    curvatures = re.findall(rf"^    p \. H p .*exact {NUMBER}, clamped {NUMBER}, Gauss-Newton {NUMBER}; its 10 "
+                            rf"largest nodes carry (\d+)%", out, re.M)
+    refused = re.findall(r"Newton system, exact Hessian: not positive definite", out)
+    on_preconditioner = re.findall(r"CG stopped where its preconditioner is not positive definite", out)
+    assert curvatures and len(curvatures) + len(on_preconditioner) == len(refused)  # each refusal told once
+    for exact, clamped, gauss_newton, share in ((float(a), float(b), float(c), int(d)) for a, b, c, d in curvatures):
+        # CG stopped at p . A p <= 0 (A: the matrix rounded to float32, whose round-off float64 may see past); the
+        # clamped and Gauss-Newton Hessians are positive semi-definite tet by tet (elasticity.py), contact's too
+        assert exact <= 1e-4 * gauss_newton and 0.0 <= clamped and 0.0 < gauss_newton
+        assert exact < clamped and 0 < share <= 100
+
+
+def test_carried_warm_start_only_where_a_single_indenter_slides():
+    solver_variants = trace_sequence.solver_variants
+    settings = type("Settings", (), {"newton_tol_mm": 1e-4})()
+
+    def guesses_of(indenters: int, step):
+        stub = type("Stub", (), {"indenters": [None] * indenters, "settings": settings,
+                                 "_carried": lambda self, shift: ("carried", *shift)})()
+        return solver_variants._carried_on_slides(stub, lambda self, step: ["all"], np.array(step, dtype=float))
+
+    assert guesses_of(1, [0.5, 0.0, 0.0, 0, 0, 0]) == [("carried", 0.5, 0.0, 0.0)]  # a slide: that guess alone
+    assert guesses_of(1, [0.5, 0.0, -0.1, 0, 0, 0]) == [("carried", 0.5, 0.0, 0.0)]  # sliding deeper: the same
+    assert guesses_of(1, [0.0, 0.0, -0.3, 0, 0, 0]) == ["all"]  # a press
+    assert guesses_of(1, [0.5, 0.0, 0.3, 0, 0, 0]) == ["all"]  # moving away from the gel: the unload guesses too
+    assert guesses_of(2, [0.5, 0.0, 0.0, 0, 0, 0, 0.5, 0.0, 0.0, 0, 0, 0]) == ["all"]  # two indenters: no carried guess
