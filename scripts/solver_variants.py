@@ -22,9 +22,9 @@ WARM_STARTS = ("all", "extrapolated", "none", "carried")
 def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
           lag_move_ratio: float | None = None, estimate_rtol: float = device_linear.ESTIMATE_RTOL,
           estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR, estimate_band: str | None = None) -> None:
-    """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not the
-    slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against the
-    last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
+    """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not
+    the slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against
+    the last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``: the device's step estimate
     (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``: newton.ESTIMATE_REFINE_BAND as "LO,HI"
     (None: as it is)."""

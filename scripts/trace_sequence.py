@@ -12,13 +12,14 @@ its reason, and each host solve its seconds; with ``--newton``, each Newton syst
 linear iterations) and at the end a table of where each frame's Newton iterations went: before friction's first lag
 move (of which on the clamped or Gauss-Newton Hessian, where the exact one was not positive definite) and after it;
 ``--warm-start-distance`` prints, after each load sub-step, how far its start and each warm-start guess
-(warm_start.py ``_guesses``, in the order made) lay from the solution Newton reached: the 90th and 99th percentile and the
-largest distance over the nodes (mm); ``--warm-start`` picks the guesses (scripts/solver_variants.py).
+(warm_start.py ``_guesses``, in the order made) lay from the solution Newton reached: the 90th and 99th percentile
+and the largest distance over the nodes (mm); ``--warm-start`` picks the guesses (scripts/solver_variants.py).
 ``--curvature`` (device path): where the device CG finds the exact Hessian of a Newton system not positive definite,
 the curvature p . H p / |p|^2 (N/mm) of the CG direction p where it stopped (p . A p <= 0, A the matrix rounded to
-float32; a stop at r . M r <= 0 is only named), in float64 with the exact, the clamped and the
-Gauss-Newton Hessian (elasticity.py), and where p lies: the share of |p|^2 on its 10 largest nodes, and those nodes'
-depth below the top surface and distance from the first indenter's axis (mm).
+float32; a stop at r . M r <= 0 is only reported), in float64 with the exact, the clamped and the Gauss-Newton
+Hessian (elasticity.py), and where p lies: the share of |p|^2 on its 10 largest nodes, and those nodes' depth below
+the top surface and distance from the first indenter's axis at the sub-step's target pose (mm). Both print the
+frame's index.
 ``kill -USR1 <pid>`` prints the main thread's Python stack to stderr (``faulthandler``; its periodic dump from a
 watchdog thread crashed this process in libpython twice, so it is not used). The gel mesh comes from the
 mesh cache (``TRANSTAC_SIM_CACHE``): a mesh built anew elsewhere differs, and so do the frames (README, Determinism).
@@ -41,7 +42,7 @@ import warp as wp
 from warp.sparse import bsr_mv
 
 from transtac_sim.config import load_scene
-from transtac_sim.physics import QuasiStaticSolver, device_linear, linear
+from transtac_sim.physics import QuasiStaticSolver, definite_cg, device_linear, linear
 from transtac_sim.physics.device_linear import DeviceSolves
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
 from transtac_sim.physics.warm_start import WarmStart
@@ -143,8 +144,9 @@ def _trace_warm_start() -> None:
                 d = np.linalg.norm(v - u, axis=1)
                 return f"{np.quantile(d, 0.9):.3f} / {np.quantile(d, 0.99):.3f} / {d.max():.3f}"
 
-            print(f"    from the solution (mm, nodes' 90th / 99th percentile / largest): last state {far(kept['prev'])}, "
-                  f"start {far(kept['start'])}, guesses " + ", ".join(far(g) for g in kept["guesses"]), flush=True)
+            print(f"    frame {self.frame_index}, from the solution (mm, nodes' 90th / 99th percentile / "
+                  f"largest): last state {far(kept['prev'])}, start {far(kept['start'])}, guesses "
+                  + ", ".join(far(g) for g in kept["guesses"]), flush=True)
         return result
 
     WarmStart._guesses = kept_guesses
@@ -155,7 +157,12 @@ def _trace_warm_start() -> None:
 def _trace_curvature() -> None:
     """Prints the curvature of the device CG's direction where it stops on the exact Hessian (``--curvature``)."""
     hessian, solve_cg, cg = QuasiStaticSolver._hessian, DeviceSolves._solve_cg, device_linear.definite_cg
+    solve_step = QuasiStaticSolver._solve_step
     last = {}
+
+    def kept_pose(self, poses, *args, **kwargs):  # the sub-step's target poses (self.poses moves at the frame's end)
+        last["axis"] = np.asarray(poses[0])[:2, 3]
+        return solve_step(self, poses, *args, **kwargs)
 
     def kept_hessian(self, ind, geometric, clamp=CLAMPED):
         last.update(solver=self, ind=ind, exact=(geometric, clamp) == (1.0, EXACT))
@@ -178,8 +185,9 @@ def _trace_curvature() -> None:
         if result.not_definite and last.get("exact") and "H" in last and workspace is not None:
             solver, p = last["solver"], workspace.p
             P = p.numpy()
-            if (P * workspace.q.numpy()).sum() > 0.0:  # q = A p: it stopped at r . M r <= 0, not on A's curvature
-                print("    CG stopped where its preconditioner is not positive definite", flush=True)
+            if workspace.state.numpy()[definite_cg.STOP] != definite_cg.NOT_DEFINITE.value:  # at r . M r <= 0
+                print(f"    frame {solver.frame_index}: CG stopped where its preconditioner is not positive definite",
+                      flush=True)
                 return result
             values = {"exact": curvature(last["H"], p, P)}
             for name, geometric in (("clamped", 1.0), ("Gauss-Newton", 0.0)):  # the next rungs assemble anew anyway
@@ -188,16 +196,19 @@ def _trace_curvature() -> None:
             top = np.argsort(-n2)[:10]
             nodes = solver._node_positions.numpy()
             X = nodes[top]
-            axis = solver.poses[0][:2, 3]
-            print(f"    p . H p / |p|^2 (N/mm) where CG stopped after {result.iterations} iterations: "
+            axis = last["axis"]
+            print(f"    frame {solver.frame_index}, p . H p / |p|^2 (N/mm) where CG stopped after {result.iterations} "
+                  "iterations: "
                   + ", ".join(f"{k} {v:.3g}" for k, v in values.items())
                   + f"; its 10 largest nodes carry {n2[top].sum() / n2.sum():.0%} of |p|^2, at depth "
                   f"{np.round(nodes[:, 2].max() - X[:, 2], 2).tolist()} mm, "
-                  f"{np.round(np.linalg.norm(X[:, :2] - axis, axis=1), 2).tolist()} mm from the indenter's axis",
+                  f"{np.round(np.linalg.norm(X[:, :2] - axis, axis=1), 2).tolist()} mm from the indenter's axis at "
+                  f"({axis[0]:.3f}, {axis[1]:.3f}) mm",
                   flush=True)
         return result
 
     QuasiStaticSolver._hessian = kept_hessian
+    QuasiStaticSolver._solve_step = kept_pose
     DeviceSolves._solve_cg = kept_matrix
     device_linear.definite_cg = measured_cg
 
@@ -263,7 +274,7 @@ def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = type
     solver_variants.apply(warm_start)
     if warm_start_distance:
         _trace_warm_start()
-    if curvature:  # before --newton's wrappers: its extra Hessians are then not logged as Newton's
+    if curvature:  # before --newton's wrappers, which would otherwise label the refused system by its extra Hessians
         _trace_curvature()
     _trace_solver()
     if newton:

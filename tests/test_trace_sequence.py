@@ -56,12 +56,13 @@ def test_newton_steps_are_split_at_the_first_lag_move(monkeypatch, capsys, lag_m
 
 def test_warm_start_distances_and_curvatures(monkeypatch, capsys):
     _restore_after(monkeypatch)
-    solutions = []  # each frame's converged dof values (one sub-step per frame here)
+    solutions, axes = {}, {}  # per frame: the converged dof values and the indenter's target axis (x, y), mm
     solve_frame = QuasiStaticSolver.solve_frame
 
     def kept(self, poses):
+        frame = self.frame_index
         result = solve_frame(self, poses)
-        solutions.append(self.u.dof_values.numpy().copy())
+        solutions[frame], axes[frame] = self.u.dof_values.numpy().copy(), np.asarray(poses[0])[:2, 3]
         return result
 
     monkeypatch.setattr(QuasiStaticSolver, "solve_frame", kept)
@@ -70,28 +71,34 @@ def test_warm_start_distances_and_curvatures(monkeypatch, capsys):
                         linear_solver="cg", newton=True, friction_lag_moves=None, warm_start_distance=True,
                         warm_start="carried", curvature=True)
     out = capsys.readouterr().out
-    lines = re.findall(r"^    from the solution .*$", out, re.M)
-    assert len(lines) == 6
-    for frame, line in enumerate(lines):
-        last_state, start, guesses = re.match(r".*last state ([^,]*), start ([^,]*), guesses ?(.*)$", line).groups()
-        triples = [tuple(float(v) for v in t.split(" / ")) for t in [last_state, start] + guesses.split(", ")
-                   if t]
+    steps = {}  # frame -> its sub-steps' (last state, start, guesses) distance triples
+    for frame, last_state, start, guesses in re.findall(
+            r"^    frame (\d+), from the solution .*last state ([^,]*), start ([^,]*), guesses ?(.*)$", out, re.M):
+        triples = [tuple(float(v) for v in t.split(" / ")) for t in [last_state, start] + guesses.split(", ") if t]
         assert all(q90 <= q99 <= largest for q90, q99, largest in triples)
         assert triples[1] in [triples[0], *triples[2:]]  # the start is the last state or one of the guesses
-        if frame:  # the last state's largest distance is that of the two frames' solutions
+        steps.setdefault(int(frame), []).append(triples)
+    assert sorted(steps) == list(range(6))
+    for frame in range(1, 6):
+        if len(steps[frame]) == 1:  # one sub-step: its last state is the last frame's solution
             change = np.linalg.norm(solutions[frame] - solutions[frame - 1], axis=1).max()
-            assert triples[0][2] == pytest.approx(change, abs=6e-4)
-    assert len(guesses.split(", ")) == 1  # frame 5 slides on: the carried guess alone ("all" makes two here)
-    curvatures = re.findall(rf"^    p \. H p .*exact {NUMBER}, clamped {NUMBER}, Gauss-Newton {NUMBER}; its 10 "
-                            rf"largest nodes carry (\d+)%", out, re.M)
+            assert steps[frame][0][0][2] == pytest.approx(change, abs=6e-4)
+    slide = steps[5][0]  # frame 5 slides on: the carried guess alone ("all" makes two here), and it is taken
+    assert len(slide) == 3 and slide[1] == slide[2] != slide[0]
+    curvatures = re.findall(rf"^    frame (\d+), p \. H p .*exact {NUMBER}, clamped {NUMBER}, Gauss-Newton {NUMBER}; "
+                            rf"its 10 largest nodes carry (\d+)% of \|p\|\^2, at depth \[([^\]]*)\] mm, .* from "
+                            rf"the indenter's axis at \({NUMBER}, {NUMBER}\) mm$", out, re.M)
     refused = re.findall(r"Newton system, exact Hessian: not positive definite", out)
     on_preconditioner = re.findall(r"CG stopped where its preconditioner is not positive definite", out)
     assert curvatures and len(curvatures) + len(on_preconditioner) == len(refused)  # each refusal told once
-    for exact, clamped, gauss_newton, share in ((float(a), float(b), float(c), int(d)) for a, b, c, d in curvatures):
+    for frame, exact, clamped, gauss_newton, share, depths, x, y in curvatures:
+        exact, clamped, gauss_newton = float(exact), float(clamped), float(gauss_newton)
         # CG stopped at p . A p <= 0 (A: the matrix rounded to float32, whose round-off float64 may see past); the
         # clamped and Gauss-Newton Hessians are positive semi-definite tet by tet (elasticity.py), contact's too
         assert exact <= 1e-4 * gauss_newton and 0.0 <= clamped and 0.0 < gauss_newton
-        assert exact < clamped and 0 < share <= 100
+        assert exact < clamped and 0 < int(share) <= 100
+        assert all(float(d) >= 0.0 for d in depths.split(","))
+        assert (float(x), float(y)) == pytest.approx(tuple(axes[int(frame)]), abs=1e-3)  # the sub-step's target
 
 
 def test_carried_warm_start_only_where_a_single_indenter_slides():
