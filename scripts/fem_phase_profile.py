@@ -29,7 +29,8 @@ iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unr
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
 ``--warm-start``, ``--exact-below``, ``--lag-move-ratio``, ``--friction-lag-moves`` and ``--estimate-band`` are the
-Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``, ``fem_estimate_refinement_gpu``).
+Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``,
+``fem_estimate_refinement_gpu``).
 On the device path the run also prints how many step estimates were refined to the tight CG tolerance, their
 refinements' CG iterations, and the refined estimates' length (max |x|, mm) against their loose one's.
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
