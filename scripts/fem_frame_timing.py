@@ -16,8 +16,8 @@ contact.py carried its sticking stretch from step to step).
 ``--sequence I`` solves sequence I of a randomised scene (its drawn indenter, depth, slide, friction and
 layout, as ``generate`` would): e.g. to see why a frame of ``scenes/train_random.toml`` failed.
 
-``--warm-start``, ``--exact-below`` and ``--lag-move-ratio`` switch on the Newton variants of
-scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``).
+``--warm-start``, ``--exact-below``, ``--lag-move-ratio`` and ``--press-lag-move-ratio`` switch on the Newton variants
+of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``, ``fem_press_lag_moves_gpu``).
 
 ``--label NAME --benchmarks`` stores the run under NAME in BENCHMARKS.md's ``fem_newton_iterations_cpu``
 section (the runs are kept in the section itself, so that "before" and "after" runs of different code
@@ -175,11 +175,13 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
+         press_lag_move_ratio: float | None = solver_variants.PRESS_LAG_MOVE_RATIO_OPTION,
          estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
          estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
          estimate_band: str | None = solver_variants.ESTIMATE_BAND_OPTION,
          friction_memory: bool = solver_variants.FRICTION_MEMORY_OPTION) -> None:
-    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band)
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
+                          press_lag_move_ratio)
     solver_variants.solver_settings(friction_memory=friction_memory, **(
         {"max_newton_iterations": max_newton_iterations} if max_newton_iterations is not None else {}))
     if not friction_memory:

@@ -28,9 +28,9 @@ iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unr
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
-``--warm-start``, ``--exact-below``, ``--lag-move-ratio``, ``--friction-lag-moves`` and ``--estimate-band`` are the
-Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``,
-``fem_estimate_refinement_gpu``).
+``--warm-start``, ``--exact-below``, ``--lag-move-ratio``, ``--press-lag-move-ratio``, ``--friction-lag-moves`` and
+``--estimate-band`` are the Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``,
+``fem_estimate_refinement_gpu``, ``fem_press_lag_moves_gpu``).
 On the device path the run also prints how many step estimates were refined to the tight CG tolerance, their
 refinements' CG iterations, and the refined estimates' length (max |x|, mm) against their loose one's.
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
@@ -134,6 +134,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
+         press_lag_move_ratio: float | None = solver_variants.PRESS_LAG_MOVE_RATIO_OPTION,
          estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
          estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
@@ -155,7 +156,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
-    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band)
+    solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
+                          press_lag_move_ratio)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
@@ -228,7 +230,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
-          f"forcing max {forcing_max:g}, lag move ratios {newton.LAG_MOVE_RATIOS}, estimate rtol "
+          f"forcing max {forcing_max:g}, lag move ratios {newton.LAG_MOVE_RATIOS}"
+          f"{'' if press_lag_move_ratio is None else f' ({press_lag_move_ratio:g} on presses)'}, estimate rtol "
           f"{device_linear.ESTIMATE_RTOL:g} (cap {device_linear.ESTIMATE_CAP_FACTOR:g}x), "
           f"friction lag moves {physics.friction_lag_moves}, exact below "
           f"{newton.EXACT_BELOW:g} tol{', no exact Hessian' if clamped_only else ''}"

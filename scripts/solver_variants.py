@@ -10,6 +10,7 @@ import numpy as np
 import typer
 
 from transtac_sim.physics import device_linear, newton, settings
+from transtac_sim.physics.newton import NewtonSteps
 
 try:
     from transtac_sim.physics.warm_start import WarmStart
@@ -21,13 +22,15 @@ WARM_STARTS = ("all", "extrapolated", "none", "carried")
 
 def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
           lag_move_ratio: float | None = None, estimate_rtol: float = device_linear.ESTIMATE_RTOL,
-          estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR, estimate_band: str | None = None) -> None:
+          estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR, estimate_band: str | None = None,
+          press_lag_move_ratio: float | None = None) -> None:
     """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not
     the slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against
     the last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``: the device's step estimate
     (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``: newton.ESTIMATE_REFINE_BAND as "LO,HI"
-    (None: as it is)."""
+    (None: as it is); ``press_lag_move_ratio``: on load steps that only press, the ratio in place of newton.LAG_MOVE_RATIOS
+    (``_moves_lag_at_on_presses``; None: as on other steps)."""
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
     if estimate_band is not None:
@@ -35,6 +38,8 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
     newton.EXACT_BELOW = exact_below
     if lag_move_ratio is not None:
         newton.LAG_MOVE_RATIOS = dict.fromkeys(newton.LAG_MOVE_RATIOS, lag_move_ratio)
+    if press_lag_move_ratio is not None:
+        _moves_lag_at_on_presses(press_lag_move_ratio)
     device_linear.ESTIMATE_RTOL = estimate_rtol
     device_linear.ESTIMATE_CAP_FACTOR = estimate_cap_factor
     if warm_start == "carried":
@@ -55,6 +60,37 @@ def _carried_on_slides(self, guesses, step: np.ndarray):
     if len(self.indenters) == 1 and np.linalg.norm(shift) > tol and step[2] <= tol:
         return [self._carried(shift)]
     return list(guesses(self, step))
+
+
+def presses_only(step: np.ndarray, tol_mm: float) -> bool:
+    """Whether a load step's pose increment ``step`` (newton.py ``_pose_step``: per indenter its translation and its
+    rotation vector times its radius, mm) only presses: no indenter moves sideways, turns or lifts by more than
+    ``tol_mm``, and one moves down (-z, into the gel) by more."""
+    per_indenter = step.reshape(-1, 6)
+    still = np.all(np.abs(per_indenter[:, [0, 1, 3, 4, 5]]) <= tol_mm) and np.all(per_indenter[:, 2] <= tol_mm)
+    return bool(still and np.any(per_indenter[:, 2] < -tol_mm))
+
+
+def _moves_lag_at_on_presses(ratio: float) -> None:
+    """``--press-lag-move-ratio``: on a load step that ``presses_only`` and may move friction's lag more than once,
+    the lag moves once Newton's estimated remaining step is below ``ratio`` x |u - u_lag| (newton.py ``_move_lag``)
+    instead of the linear solver's newton.LAG_MOVE_RATIOS. Measured with 1 (moves as early as the estimate allows):
+    BENCHMARKS.md ``fem_press_lag_moves_gpu``."""
+    solve_step, lag_threshold = NewtonSteps._solve_step, NewtonSteps._lag_threshold
+    pressing = {}  # solver id -> whether its current load step only presses
+
+    def noting_presses(self, poses, prev_poses, may_stall=False):
+        pressing[id(self)] = self.settings.friction_lag_moves > 1 and presses_only(
+            self._pose_step(prev_poses, poses), self.settings.newton_tol_mm)
+        return solve_step(self, poses, prev_poses, may_stall)
+
+    def threshold(self, change):
+        if not pressing.get(id(self)):
+            return lag_threshold(self, change)
+        tol = self.settings.newton_tol_mm
+        return None if change < 10.0 * tol else max(tol, ratio * change)
+
+    NewtonSteps._solve_step, NewtonSteps._lag_threshold = noting_presses, threshold
 
 
 def _band(text: str) -> tuple[float, float]:
@@ -91,6 +127,9 @@ WARM_START_OPTION = typer.Option("all", help="the guesses a (sub)step may start 
 EXACT_BELOW_OPTION = typer.Option(newton.EXACT_BELOW, min=0.0, help="newton.EXACT_BELOW (multiples of newton_tol_mm)")
 LAG_MOVE_RATIO_OPTION = typer.Option(None, min=0.0, help="replace newton.LAG_MOVE_RATIOS (of both linear solvers; "
                                      f"default {newton.LAG_MOVE_RATIOS})")
+PRESS_LAG_MOVE_RATIO_OPTION = typer.Option(None, min=0.0, help="on load steps that only press (and may move "
+                                           "friction's lag more than once), this ratio in place of "
+                                           "newton.LAG_MOVE_RATIOS")
 ESTIMATE_RTOL_OPTION = typer.Option(device_linear.ESTIMATE_RTOL, min=0.0, max=1.0,
                                     help="device_linear.ESTIMATE_RTOL (the device's step estimate)")
 ESTIMATE_CAP_FACTOR_OPTION = typer.Option(device_linear.ESTIMATE_CAP_FACTOR, min=0.0,

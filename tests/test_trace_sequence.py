@@ -12,8 +12,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import trace_sequence  # noqa: E402
 
-from transtac_sim.physics import QuasiStaticSolver, device_linear, linear  # noqa: E402
+from transtac_sim.physics import QuasiStaticSolver, device_linear, linear, newton  # noqa: E402
 from transtac_sim.physics.device_linear import DeviceSolves  # noqa: E402
+from transtac_sim.physics.newton import NewtonSteps  # noqa: E402
 from transtac_sim.physics.warm_start import WarmStart  # noqa: E402
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
@@ -115,3 +116,36 @@ def test_carried_warm_start_only_where_a_single_indenter_slides():
     assert guesses_of(1, [0.0, 0.0, -0.3, 0, 0, 0]) == ["all"]  # a press
     assert guesses_of(1, [0.5, 0.0, 0.3, 0, 0, 0]) == ["all"]  # moving away from the gel: the unload guesses too
     assert guesses_of(2, [0.5, 0.0, 0.0, 0, 0, 0, 0.5, 0.0, 0.0, 0, 0, 0]) == ["all"]  # two indenters: no carried guess
+
+
+def test_press_lag_move_ratio_only_on_presses_that_may_move_the_lag_again(monkeypatch):
+    """solver_variants ``--press-lag-move-ratio`` (BENCHMARKS.md ``fem_press_lag_moves_gpu``): ``presses_only`` tells a
+    press from a slide, a turn, a lift and a hold; the lag threshold takes the press ratio on such a load step where the
+    lag may move more than once, and newton.LAG_MOVE_RATIOS elsewhere."""
+    solver_variants, tol = trace_sequence.solver_variants, 1e-4
+    assert solver_variants.presses_only(np.array([0, 0, -0.1, 0, 0, 0.0]), tol)
+    assert solver_variants.presses_only(np.array([0, 0, -0.1, 0, 0, 0, 0, 0, 0, 0, 0, 0.0]), tol)  # the other holds
+    assert solver_variants.presses_only(np.array([5e-5, 0, -0.1, 0, 0, 0.0]), tol)  # sideways within the tolerance
+    for step in ([0.01, 0, -0.1, 0, 0, 0], [0, 0, -0.1, 0, 0.01, 0], [0, 0, 0.1, 0, 0, 0], [0, 0, 0, 0, 0, 0],
+                 [0, 0, -0.1, 0, 0, 0, 0.1, 0, 0, 0, 0, 0]):  # slides, turns, lifts, holds; the other one slides
+        assert not solver_variants.presses_only(np.array(step, dtype=float), tol), step
+
+    class Stub:
+        def __init__(self, step, lag_moves: int):
+            self.settings = type("Settings", (), {"newton_tol_mm": tol, "friction_lag_moves": lag_moves})()
+            self._linear = type("Linear", (), {"method": "cg"})()
+            self._step = np.array(step, dtype=float)
+
+        def _pose_step(self, prev_poses, poses):
+            return self._step
+
+    monkeypatch.setattr(NewtonSteps, "_solve_step", lambda self, poses, prev_poses, may_stall=False: "solved")
+    monkeypatch.setattr(NewtonSteps, "_lag_threshold", NewtonSteps._lag_threshold)
+    solver_variants._moves_lag_at_on_presses(1.0)
+    slide_ratio = newton.LAG_MOVE_RATIOS["cg"]
+    for step, lag_moves, ratio in (([0, 0, -0.1, 0, 0, 0], 4, 1.0), ([0.1, 0, 0, 0, 0, 0], 4, slide_ratio),
+                                   ([0, 0, -0.1, 0, 0, 0], 1, slide_ratio)):
+        stub = Stub(step, lag_moves)
+        assert NewtonSteps._solve_step(stub, None, None) == "solved"
+        assert NewtonSteps._lag_threshold(stub, 0.01) == pytest.approx(max(tol, ratio * 0.01)), (step, lag_moves)
+        assert NewtonSteps._lag_threshold(stub, 5 * tol) is None  # within 10 newton_tol_mm: the lag stays
