@@ -35,7 +35,10 @@ On the device path the run also prints how many step estimates were refined to t
 refinements' CG iterations, and the refined estimates' length (max |x|, mm) against their loose one's.
 ``--save-markers FILE.npz`` keeps each frame's marker positions (gel frame, mm), so that variants run
 one after another can be compared for accuracy (``--compare-to`` an earlier run's file prints the largest
-marker difference per frame).
+marker difference per frame). ``--save-step-solutions FILE.npz`` keeps each converged load step's poses and solution,
+and ``--oracle-lag FILE.npz`` takes that solution as the step's friction lag from Newton's start, never moved
+(solver_variants.py ``oracle_lag``): the Newton iterations that no lag scheme could save (BENCHMARKS.md
+``fem_oracle_lag_gpu``).
 """
 
 from __future__ import annotations
@@ -153,11 +156,19 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          estimate_band: str | None = solver_variants.ESTIMATE_BAND_OPTION,
          save_markers: Path | None = typer.Option(None, help="save each frame's marker positions (npz)"),
          compare_to: Path | None = typer.Option(None, help="an earlier --save-markers file to compare with"),
+         save_step_solutions: Path | None = typer.Option(None, help="save each converged load step's poses and "
+                                                         "solution u (npz), for --oracle-lag"),
+         oracle_lag: Path | None = typer.Option(None, help="an earlier --save-step-solutions file: each load step's "
+                                                "friction lag is that run's solution of the step, never moved"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
                           press_lag_move_ratio)
+    step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
+    if oracle_lag:
+        with np.load(oracle_lag) as kept:
+            solver_variants.oracle_lag(kept["poses"], kept["u"])
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
@@ -226,6 +237,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         stop_recording()
     if save_markers:
         np.savez(save_markers, markers=np.stack(markers))
+    if step_solutions is not None:
+        np.savez(save_step_solutions, poses=np.stack([p for p, _ in step_solutions]),
+                 u=np.stack([u for _, u in step_solutions]))
     counted = frame_seconds[1:] if skip_first and len(frame_seconds) > 1 else frame_seconds
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
@@ -235,9 +249,11 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
           f"{device_linear.ESTIMATE_RTOL:g} (cap {device_linear.ESTIMATE_CAP_FACTOR:g}x), "
           f"friction lag moves {physics.friction_lag_moves}, exact below "
           f"{newton.EXACT_BELOW:g} tol{', no exact Hessian' if clamped_only else ''}"
-          f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}: "
+          f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}"
+          f"{', the lag of ' + str(oracle_lag) if oracle_lag else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
-          f"({1000 * total / max(iterations, 1):.1f} ms per iteration)")
+          f"({1000 * total / max(iterations, 1):.1f} ms per iteration); Newton iterations per frame, median over "
+          f"all frames {statistics.median(frame_iterations):g}")
     if gpu_activity:
         print_gpu_activity(activity, total)
         return

@@ -93,6 +93,49 @@ def _moves_lag_at_on_presses(ratio: float) -> None:
     NewtonSteps._solve_step, NewtonSteps._lag_threshold = noting_presses, threshold
 
 
+def keep_step_solutions() -> list[tuple[np.ndarray, np.ndarray]]:
+    """``--save-step-solutions``: from now on every converged load (sub)step appends (its indenters' target poses,
+    (indenters, 4, 4) mm; its solution u, (nodes, 3) mm) to the list returned, for ``oracle_lag``."""
+    kept: list[tuple[np.ndarray, np.ndarray]] = []
+    solve_step = NewtonSteps._solve_step
+
+    def keeping(self, poses, prev_poses, may_stall=False):
+        result = solve_step(self, poses, prev_poses, may_stall)
+        if result[0]:
+            kept.append((np.stack(poses), self.u.dof_values.numpy().copy()))
+        return result
+
+    NewtonSteps._solve_step = keeping
+    return kept
+
+
+def oracle_lag(poses: np.ndarray, solutions: np.ndarray) -> None:
+    """``--oracle-lag``: each load (sub)step's friction lag is that step's solution ``solutions[k]`` from an earlier run
+    (``keep_step_solutions`` with a converged lag, e.g. 30 lag moves), set where Newton starts, and never moved. So the
+    lag is the one Newton ends with from the first iteration: the Newton iterations left are what no lag scheme (timing,
+    relaxation, prediction of the lag) could take away. The k-th (sub)step must go to ``poses[k]``: a run that sub-steps
+    where the earlier one did not (or the reverse) is refused at the first step that differs."""
+    solve_step, newton_steps = NewtonSteps._solve_step, NewtonSteps._newton
+    step_index: dict[int, int] = {}  # solver id -> index of its current (sub)step in the earlier run
+
+    def matched_step(self, poses_, prev_poses, may_stall=False):
+        k = step_index.get(id(self), -1) + 1
+        if k >= len(poses) or not np.allclose(np.stack(poses_), poses[k], atol=1e-9):
+            raise RuntimeError(f"--oracle-lag: load step {k} of this run goes to other poses than the earlier run's "
+                               f"(of {len(poses)} steps): the runs sub-stepped differently, so no lag can be taken")
+        step_index[id(self)] = k
+        return solve_step(self, poses_, prev_poses, may_stall)
+
+    def from_oracle(self, ind, may_stall=False):
+        self.u_lag.dof_values.assign(solutions[step_index[id(self)]])
+        self._update_lag(ind)
+        return newton_steps(self, ind, may_stall)
+
+    NewtonSteps._solve_step, NewtonSteps._newton = matched_step, from_oracle
+    NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False
+    NewtonSteps._lag_change = lambda self: 0.0  # the step estimate is compared with newton_tol_mm alone (_estimate_band)
+
+
 def _band(text: str) -> tuple[float, float]:
     """``--estimate-band``'s "LO,HI" (multiples of newton_tol_mm, 0 <= LO <= HI), for a tree that has the band."""
     if not hasattr(newton, "ESTIMATE_REFINE_BAND"):

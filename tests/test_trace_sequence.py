@@ -149,3 +149,56 @@ def test_press_lag_move_ratio_only_on_presses_that_may_move_the_lag_again(monkey
         assert NewtonSteps._solve_step(stub, None, None) == "solved"
         assert NewtonSteps._lag_threshold(stub, 0.01) == pytest.approx(max(tol, ratio * 0.01)), (step, lag_moves)
         assert NewtonSteps._lag_threshold(stub, 5 * tol) is None  # within 10 newton_tol_mm: the lag stays
+
+
+def test_oracle_lag_starts_each_step_from_the_recorded_solution(monkeypatch):
+    """solver_variants ``--save-step-solutions`` / ``--oracle-lag`` (BENCHMARKS.md ``fem_oracle_lag_gpu``): a run with a
+    converged lag keeps each step's poses and solution; a second run takes that solution as each step's friction lag
+    where Newton starts, never moves it, and ends at the recorded solution; a run whose steps differ is refused."""
+    import dataclasses
+
+    from transtac_sim.dataset.sequence import StageClock
+    from transtac_sim.scene_setup import load_setup
+    from transtac_sim.simulation import simulate_frames
+
+    solver_variants = trace_sequence.solver_variants
+    for name in ("_solve_step", "_newton", "_move_lag", "_lag_change"):
+        monkeypatch.setattr(NewtonSteps, name, getattr(NewtonSteps, name))
+    setup = load_setup(FIXTURES / "tiny_press_slide.toml")
+
+    def run(frames: int, lag_moves: int) -> list:
+        physics = setup.scene.physics.model_copy(update={"linear_solver": "direct", "friction_lag_moves": lag_moves})
+        scene = setup.scene.model_copy(update={"physics": physics})
+        return list(simulate_frames(dataclasses.replace(setup, scene=scene), frames, StageClock()))
+
+    solve_step = NewtonSteps._solve_step
+    kept = solver_variants.keep_step_solutions()
+    recorded = run(3, 12)  # a first touch and two presses with friction 0.5, the lag converged
+    NewtonSteps._solve_step = solve_step
+    assert len(kept) == 3 and all(f.solver["substeps"] == 1 for f in recorded)
+    poses, solutions = np.stack([p for p, _ in kept]), np.stack([u for _, u in kept])
+    assert np.abs(solutions[2]).max() > 0.5  # the press has moved the gel
+
+    starts, ends = [], []  # per step: the largest distance of friction's lag from the recorded solution where
+    newton_steps = NewtonSteps._newton  # Newton starts and where it ends
+
+    def spied(self, ind, may_stall=False):
+        k = len(starts)
+        starts.append(np.abs(self.u_lag.dof_values.numpy() - solutions[k]).max())
+        result = newton_steps(self, ind, may_stall)
+        ends.append(np.abs(self.u_lag.dof_values.numpy() - solutions[k]).max())
+        return result
+
+    NewtonSteps._newton = spied
+    solver_variants.oracle_lag(poses, solutions)
+    oracle = run(3, 4)
+    assert starts == [0.0, 0.0, 0.0] and ends == [0.0, 0.0, 0.0]  # set where Newton starts, never moved
+    for a, b in zip(recorded, oracle, strict=True):
+        assert np.abs(a.markers_gel_mm - b.markers_gel_mm).max() < 1e-3  # Newton's tolerance 1e-4 mm, lag within 1e-3
+        assert b.solver["iterations"] <= a.solver["iterations"]
+    NewtonSteps._solve_step, NewtonSteps._newton = solve_step, newton_steps
+    shifted = poses.copy()
+    shifted[1, :, 2, 3] -= 0.01
+    solver_variants.oracle_lag(shifted, solutions)
+    with pytest.raises(RuntimeError, match="load step 1 of this run goes to other poses"):
+        run(2, 4)
