@@ -197,7 +197,6 @@ def test_oracle_lag_starts_each_step_from_the_recorded_solution(monkeypatch):
     assert starts == [0.0, 0.0, 0.0] and ends == [0.0, 0.0, 0.0]  # set where Newton starts, never moved
     for a, b in zip(recorded, oracle, strict=True):
         assert np.abs(a.markers_gel_mm - b.markers_gel_mm).max() < 1e-3  # Newton's tolerance 1e-4 mm, lag within 1e-3
-        assert b.solver["iterations"] <= a.solver["iterations"]
     NewtonSteps._solve_step, NewtonSteps._newton = solve_step, newton_steps
     shifted = poses.copy()
     shifted[1, :, 2, 3] -= 0.01
