@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import scipy.sparse.linalg as spla
@@ -269,14 +270,11 @@ NEWTONS = {"lu": coupled_newton, "gmres": _krylov_newton("gmres"), "bicgstab": _
 
 
 def _coupled_run(scene: Path, frames: int, linear: str, sequence: int | None, trajectory_from: Path | None) -> dict:
-    lagged = QuasiStaticSolver._newton
-    QuasiStaticSolver._newton = NEWTONS[linear]
     krylov_iterations.clear()
     krylov_unsolved.update(exact=0, both=0)
-    try:
+    # put back as it was: _newton is inherited (newton.py), so no copy is left on the subclass
+    with mock.patch.object(QuasiStaticSolver, "_newton", NEWTONS[linear]):
         return run(scene, 2, frames, trajectory_from, sequence)
-    finally:
-        QuasiStaticSolver._newton = lagged
 
 
 def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_slide.toml"),

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import scipy.sparse as sp
@@ -80,12 +81,12 @@ def _systems(scene: Path, frames: int) -> tuple[list[System], QuasiStaticSolver]
     setup = load_setup(scene)
     physics = setup.scene.physics.model_copy(update={"device": "cpu", "linear_solver": "cg"})
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
-    device_linear.DeviceSolves._solve_cg, QuasiStaticSolver._solve_step = keeping, noting
-    try:
+    # patch.object puts each back as it was: _solve_step is inherited (newton.py), so it is deleted from the subclass
+    # again rather than left there as a copy that would hide later patches of NewtonSteps (scripts/solver_variants.py)
+    with (mock.patch.object(device_linear.DeviceSolves, "_solve_cg", keeping),
+          mock.patch.object(QuasiStaticSolver, "_solve_step", noting)):
         for f in simulate_frames(setup, frames, StageClock()):
             print(f"frame {f.frame}: {f.solver['iterations']} Newton iterations, {len(kept)} systems kept", flush=True)
-    finally:
-        device_linear.DeviceSolves._solve_cg, QuasiStaticSolver._solve_step = solve_cg, solve_step
     return kept, holder["solver"]
 
 
