@@ -27,10 +27,10 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
     """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not
     the slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against
     the last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
-    newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``: the device's step estimate
-    (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``: newton.ESTIMATE_REFINE_BAND as "LO,HI"
-    (None: as it is); ``press_lag_move_ratio``: on load steps that only press, the ratio in place of newton.LAG_MOVE_RATIOS
-    (``_moves_lag_at_on_presses``; None: as on other steps)."""
+    newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``:
+    the device's step estimate (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``:
+    newton.ESTIMATE_REFINE_BAND as "LO,HI" (None: as it is); ``press_lag_move_ratio``: on load steps that only press,
+    the ratio in place of newton.LAG_MOVE_RATIOS (``_moves_lag_at_on_presses``; None: as on other steps)."""
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
     if estimate_band is not None:
@@ -133,7 +133,8 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray) -> None:
 
     NewtonSteps._solve_step, NewtonSteps._newton = matched_step, from_oracle
     NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False
-    NewtonSteps._lag_change = lambda self: 0.0  # the step estimate is compared with newton_tol_mm alone (_estimate_band)
+    # the step estimate is then compared with newton_tol_mm alone (newton.py ``_estimate_band``)
+    NewtonSteps._lag_change = lambda self: 0.0
 
 
 def _band(text: str) -> tuple[float, float]:

@@ -25,8 +25,9 @@ launches: the product, p . q, then one kernel for the updates of x and r, z = M 
 entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
 the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
 whether it is still going, iteration cap, and at the end max |x| and its NaN count) is one small float64 array, so
-the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop therefore runs ``UNROLL`` iterations, and a solve pays for at most UNROLL - 1
-iterations after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
+the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop
+therefore runs ``UNROLL`` iterations, and a solve pays for at most UNROLL - 1 iterations after its stop: on
+press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
 (BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums
 added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
