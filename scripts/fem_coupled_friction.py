@@ -1,7 +1,7 @@
 """Study: friction's normal pressure implicit in Newton (no lag loop) against the lagged solver.
 
     .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--linear lu|gmres|bicgstab]
-        [--sequence I] [--trajectory-from SCENE] [--md-out FILE] [--benchmarks]
+        [--sequence I] [--trajectory-from SCENE] [--lagged-first] [--md-out FILE] [--benchmarks]
     python scripts/fem_coupled_friction.py scenes/train_random.toml --sequence 2 --moves 1,4 --linear gmres   (a GPU)
 
 The solver lags friction's normal pressure lam = k g and tangent plane n at u_lag (physics/contact.py) and moves the lag
@@ -23,6 +23,10 @@ on |gradient|^2
 det F > 0. No stiffness raise, no stall test: a study, not the solver. Its solution is the
 lag's fixed point, so its frames' ``friction_lag_residual_n`` is round-off.
 
+``--lagged-first`` adds a run whose load steps are first solved by the solver's Newton with friction's first lag never
+moved, then by this Newton from that solution (``lagged_then_coupled``): whether the lag's correction from a nearby
+lag's solution costs the coupled Newton only a step or two (BENCHMARKS.md ``fem_lag_then_coupled_cpu``).
+
 Reports per run (the lagged solver with each count in ``--moves``, then this Newton): Newton iterations per frame,
 line-search halvings, the friction force per sliding frame, the largest lag residual, and the largest marker distance
 from the coupled run; a run whose frame fails is listed with its error. Default: the tiny press-and-slide fixture on
@@ -31,6 +35,7 @@ this CPU.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from unittest import mock
@@ -53,6 +58,7 @@ from transtac_sim.physics.device_linear import fixed_blocks, project_fixed  # no
 from transtac_sim.physics.elasticity import CLAMPED, EXACT  # noqa: E402
 from transtac_sim.physics.host_factorisation import bsr_to_scipy  # noqa: E402
 from transtac_sim.physics.indenter_query import Indenters, penetration  # noqa: E402
+from transtac_sim.physics.newton import NewtonSteps  # noqa: E402
 from transtac_sim.physics.reductions import max_abs, negated_free  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -267,14 +273,40 @@ def _krylov_newton(method: str):
 
 
 NEWTONS = {"lu": coupled_newton, "gmres": _krylov_newton("gmres"), "bicgstab": _krylov_newton("bicgstab")}
+#: (lagged, coupled) Newton iterations per load step of the last ``lagged_then_coupled`` run (coupled None where the
+#: lagged part failed)
+phase_iterations: list[tuple[int, int | None]] = []
 
 
-def _coupled_run(scene: Path, frames: int, linear: str, sequence: int | None, trajectory_from: Path | None) -> dict:
+def lagged_then_coupled(newton):
+    """A Newton for one load step, in place of ``NewtonSteps._newton``: the solver's own Newton with friction's first
+    lag (the warm start's, newton.py ``_solve_step``) never moved, then ``newton`` (the coupled one) from its solution.
+    The question it answers: is the coupled Newton quadratic from the solution of a nearby lag, so that the lag's
+    correction costs a step or two? Iterations of both parts are summed; the split goes to ``phase_iterations``."""
+    def solve(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+        kept = solver.settings
+        solver.settings = dataclasses.replace(kept, friction_lag_moves=0)
+        try:
+            ok, lagged, why, pen = NewtonSteps._newton(solver, ind, may_stall)
+        finally:
+            solver.settings = kept
+        if not ok:
+            phase_iterations.append((lagged, None))
+            return ok, lagged, why, pen
+        ok, coupled, why, pen = newton(solver, ind, may_stall)
+        phase_iterations.append((lagged, coupled))
+        return ok, lagged + coupled, why, pen
+    return solve
+
+
+def _coupled_run(scene: Path, frames: int, newton, sequence: int | None, trajectory_from: Path | None) -> dict:
     krylov_iterations.clear()
     krylov_unsolved.update(exact=0, both=0)
+    phase_iterations.clear()
     # put back as it was: _newton is inherited (newton.py), so no copy is left on the subclass
-    with mock.patch.object(QuasiStaticSolver, "_newton", NEWTONS[linear]):
-        return run(scene, 2, frames, trajectory_from, sequence)
+    with mock.patch.object(QuasiStaticSolver, "_newton", newton):
+        result = run(scene, 2, frames, trajectory_from, sequence)
+    return result | {"krylov": (list(krylov_iterations), dict(krylov_unsolved)), "phases": list(phase_iterations)}
 
 
 def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_slide.toml"),
@@ -283,6 +315,8 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                                                "bicgstab (Warp's, on the solver's device)"),
          sequence: int | None = typer.Option(None, min=0, help="solve this sequence of a randomised scene"),
          trajectory_from: Path | None = typer.Option(None, help="the indenters' motion from this scene"),
+         lagged_first: bool = typer.Option(False, help="also a run whose load steps are first solved with friction's "
+                                                       "first lag never moved, then by the coupled Newton from there"),
          md_out: Path | None = typer.Option(None, help="also write the table to this file"),
          benchmarks: bool = typer.Option(False, help=f"write the table into BENCHMARKS.md, section {SECTION}")) -> None:
     if linear not in NEWTONS:
@@ -299,7 +333,10 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
     for m in moves.split(","):
         attempt(f"lagged, {m} moves", lambda m=m: run(scene, 2, frames, trajectory_from, sequence,
                                                                   friction_lag_moves=int(m)))
-    attempt("coupled (no lag)", lambda: _coupled_run(scene, frames, linear, sequence, trajectory_from))
+    attempt("coupled (no lag)", lambda: _coupled_run(scene, frames, NEWTONS[linear], sequence, trajectory_from))
+    if lagged_first:
+        attempt("first lag solved, then coupled", lambda: _coupled_run(
+            scene, frames, lagged_then_coupled(NEWTONS[linear]), sequence, trajectory_from))
     if not runs:
         raise SystemExit("every run failed")
     ref_name = "coupled (no lag)" if "coupled (no lag)" in runs else list(runs)[-1]
@@ -323,11 +360,16 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                      f"{np.max(np.linalg.norm(np.array(r['markers_mm']) - ref_markers, axis=-1)):.4f} | "
                      f"{sum(r['seconds']):.1f} |")
     lines += [f"| {name} | failed: {why} | | | | | | | |" for name, why in failed.items()]
-    if linear != "lu" and krylov_iterations:
-        lines += ["", f"{linear} iterations per Newton system of the coupled run (counted at its checks): median "
-                  f"{int(np.median(krylov_iterations))}, max {max(krylov_iterations)}, {len(krylov_iterations)} systems; "
-                  f"{krylov_unsolved['exact']} not solved with the exact Hessian within {KRYLOV_MAXITER[EXACT]} (the "
-                  f"clamped one taken), {krylov_unsolved['both']} with neither (within {KRYLOV_MAXITER[CLAMPED]})."]
+    for name, r in runs.items():
+        iterations, unsolved = r.get("krylov", ([], {}))
+        if linear != "lu" and iterations:
+            lines += ["", f"{linear} iterations per Newton system of the {name} run (counted at its checks): median "
+                      f"{int(np.median(iterations))}, max {max(iterations)}, {len(iterations)} systems; "
+                      f"{unsolved['exact']} not solved with the exact Hessian within {KRYLOV_MAXITER[EXACT]} (the "
+                      f"clamped one taken), {unsolved['both']} with neither (within {KRYLOV_MAXITER[CLAMPED]})."]
+        if r.get("phases"):
+            lines += ["", f"{name}, Newton iterations per load step (first lag never moved + coupled): "
+                      + ", ".join(f"{a}+{b if b is not None else 'failed'}" for a, b in r["phases"]) + "."]
     publish("\n".join(lines), md_out, benchmarks, SECTION)
 
 

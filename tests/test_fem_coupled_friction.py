@@ -9,7 +9,14 @@ import pytest
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-from fem_coupled_friction import NEWTONS, coupled_newton, coupling_matrix, gradient_with_lag_at_u  # noqa: E402
+from fem_coupled_friction import (  # noqa: E402
+    NEWTONS,
+    coupled_newton,
+    coupling_matrix,
+    gradient_with_lag_at_u,
+    lagged_then_coupled,
+    phase_iterations,
+)
 
 from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, SolverSettings  # noqa: E402
 from transtac_sim.physics.box_mesh import box_tet_mesh  # noqa: E402
@@ -87,3 +94,15 @@ def test_device_coupled_newton_solves_the_lag_s_fixed_point(method, linear_solve
     assert residual_krylov < 2e-4 and residual_lu < 1e-6, (residual_krylov, residual_lu)
     assert residual_lagged > 10.0 * residual_krylov, (residual_lagged, residual_krylov)
     assert np.abs(u_lagged - u_lu).max() > 10.0 * np.abs(u_krylov - u_lu).max()
+
+
+def test_lagged_then_coupled_newton_ends_at_the_coupled_solution():
+    """``--lagged-first``: the slide solved with friction's first lag never moved, then by the coupled Newton from there,
+    ends where the coupled Newton alone does, with the lag converged, and both parts took Newton iterations (the first
+    lag is not the solution's: the plate moved)."""
+    u_coupled, _ = _plate_slide(coupled_newton)
+    phase_iterations.clear()
+    u_both, residual_both = _plate_slide(lagged_then_coupled(coupled_newton))
+    np.testing.assert_allclose(u_both, u_coupled, atol=1e-6)
+    assert residual_both < 1e-6, residual_both
+    assert len(phase_iterations) == 1 and all(n >= 1 for n in phase_iterations[0]), phase_iterations
