@@ -273,9 +273,9 @@ def _krylov_newton(method: str):
 
 
 NEWTONS = {"lu": coupled_newton, "gmres": _krylov_newton("gmres"), "bicgstab": _krylov_newton("bicgstab")}
-#: (lagged, coupled) Newton iterations per load step of the last ``lagged_then_coupled`` run (coupled None where the
-#: lagged part failed)
-phase_iterations: list[tuple[int, int | None]] = []
+#: (lagged, coupled) Newton iterations and the coupled part's line-search halvings per load step of the last
+#: ``lagged_then_coupled`` run (the coupled ones None where the lagged part failed)
+phase_iterations: list[tuple[int, int | None, int | None]] = []
 
 
 def lagged_then_coupled(newton):
@@ -291,10 +291,11 @@ def lagged_then_coupled(newton):
         finally:
             solver.settings = kept
         if not ok:
-            phase_iterations.append((lagged, None))
+            phase_iterations.append((lagged, None, None))
             return ok, lagged, why, pen
+        halvings = solver.stats["backtracks"]
         ok, coupled, why, pen = newton(solver, ind, may_stall)
-        phase_iterations.append((lagged, coupled))
+        phase_iterations.append((lagged, coupled, solver.stats["backtracks"] - halvings))
         return ok, lagged + coupled, why, pen
     return solve
 
@@ -368,8 +369,9 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                       f"{unsolved['exact']} not solved with the exact Hessian within {KRYLOV_MAXITER[EXACT]} (the "
                       f"clamped one taken), {unsolved['both']} with neither (within {KRYLOV_MAXITER[CLAMPED]})."]
         if r.get("phases"):
-            lines += ["", f"{name}, Newton iterations per load step (first lag never moved + coupled): "
-                      + ", ".join(f"{a}+{b if b is not None else 'failed'}" for a, b in r["phases"]) + "."]
+            lines += ["", f"{name}, Newton iterations per load step, first lag never moved + coupled (the coupled "
+                      "part's line-search halvings): " + ", ".join(
+                          f"{a}+{b} ({h})" if b is not None else f"{a}+failed" for a, b, h in r["phases"]) + "."]
     publish("\n".join(lines), md_out, benchmarks, SECTION)
 
 

@@ -105,4 +105,4 @@ def test_lagged_then_coupled_newton_ends_at_the_coupled_solution():
     u_both, residual_both = _plate_slide(lagged_then_coupled(coupled_newton))
     np.testing.assert_allclose(u_both, u_coupled, atol=1e-6)
     assert residual_both < 1e-6, residual_both
-    assert len(phase_iterations) == 1 and all(n >= 1 for n in phase_iterations[0]), phase_iterations
+    assert len(phase_iterations) == 1 and all(n >= 1 for n in phase_iterations[0][:2]), phase_iterations
