@@ -1,7 +1,7 @@
 """Study: friction's normal pressure implicit in Newton (no lag loop) against the lagged solver.
 
     .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--linear lu|gmres|bicgstab]
-        [--sequence I] [--trajectory-from SCENE] [--lagged-first] [--md-out FILE] [--benchmarks]
+        [--sequence I] [--trajectory-from SCENE] [--lagged-first] [--merit-memory M] [--md-out FILE] [--benchmarks]
     python scripts/fem_coupled_friction.py scenes/train_random.toml --sequence 2 --moves 1,4 --linear gmres   (a GPU)
 
 The solver lags friction's normal pressure lam = k g and tangent plane n at u_lag (physics/contact.py) and moves the lag
@@ -26,6 +26,9 @@ lag's fixed point, so its frames' ``friction_lag_residual_n`` is round-off.
 ``--lagged-first`` adds a run whose load steps are first solved by the solver's Newton with friction's first lag never
 moved, then by this Newton from that solution (``lagged_then_coupled``): whether the lag's correction from a nearby
 lag's solution costs the coupled Newton only a step or two (BENCHMARKS.md ``fem_lag_then_coupled_cpu``).
+``--merit-memory M`` (above 1) adds a run of the coupled Newton whose line search is nonmonotone: a step must lower
+|g|^2 below the largest of the last M accepted values, not the last one (``reference_merit``), so that full Newton
+steps across the contact's stick-slip changes are not cut back (BENCHMARKS.md ``fem_coupled_nonmonotone_cpu``).
 
 Reports per run (the lagged solver with each count in ``--moves``, then this Newton): Newton iterations per frame,
 line-search halvings, the friction force per sliding frame, the largest lag residual, and the largest marker distance
@@ -113,15 +116,25 @@ def gradient_with_lag_at_u(solver: QuasiStaticSolver, ind) -> wp.array:
     return solver._gradient(ind)
 
 
-def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+def reference_merit(merits: list[float], memory: int) -> float:
+    """The merit a line-search step must lower (by Armijo's factor): the largest of the last ``memory`` accepted ones, a
+    nonmonotone search (Grippo, Lampariello & Lucidi 1986) that lets a full Newton step raise |g|^2 for a while where a
+    monotone one (``memory`` 1) would cut it back."""
+    return max(merits[-memory:])
+
+
+def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False,
+                   merit_memory: int = 1) -> tuple[bool, int, str, float]:
     """Newton on the lag-free problem for one load step, in place of ``NewtonSteps._newton`` (same result tuple;
-    ``may_stall`` is ignored: no stall test)."""
+    ``may_stall`` is ignored: no stall test). The line search compares |g|^2 with the largest of the last
+    ``merit_memory`` accepted ones (``reference_merit``; 1: with the last, a monotone search)."""
     free, tol = solver._linear._free, solver.settings.newton_tol_mm
 
     def gradient_at_u() -> np.ndarray:  # on the free dofs
         return gradient_with_lag_at_u(solver, ind).numpy().reshape(-1)[free].copy()
 
     g = gradient_at_u()
+    merits = [0.5 * g @ g]
     for iteration in range(1, MAX_ITERATIONS + 1):
         J_c = coupling_matrix(solver, ind)
         J = (bsr_to_scipy(solver._hessian(ind, 1.0, EXACT)) + bsr_to_scipy(J_c)).tocsr()[free][:, free].tocsc()
@@ -134,7 +147,7 @@ def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> t
             u0[free] += d
             solver.u.dof_values.assign(u0.reshape(-1, 3))
             return True, iteration, "", solver._max_penetration(ind)
-        merit, alpha = 0.5 * g @ g, 1.0
+        merit, alpha = reference_merit(merits, merit_memory), 1.0
         while alpha > 1e-4:
             x = u0.copy()
             x[free] += alpha * d
@@ -144,6 +157,7 @@ def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> t
                 g_try = gradient_at_u()
                 if 0.5 * g_try @ g_try <= (1.0 - 1e-4 * alpha) * merit:
                     g = g_try
+                    merits.append(0.5 * g @ g)
                     break
                 solver.u.dof_values.assign(u0.reshape(-1, 3))
             alpha *= 0.5
@@ -182,8 +196,8 @@ class TwoLevel(BlockJacobi):
         self._matvec = matvec
 
 
-def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = False,
-                          method: str = "gmres") -> tuple[bool, int, str, float]:
+def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = False, method: str = "gmres",
+                          merit_memory: int = 1) -> tuple[bool, int, str, float]:
     """``coupled_newton`` with every array on the solver's device (a GPU's, where it has one): J = H + J_c assembled
     there, its fixed rows and columns projected out, and each system solved by Warp's restarted GMRES or BiCGStab
     (``method``) preconditioned
@@ -191,7 +205,7 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
     level: the host path), to the inexact-Newton tolerance ``FORCING_MAX`` / ``KRYLOV_RTOL_MIN`` within
     ``KRYLOV_MAXITER``; where that fails J is made with the clamped Hessian (the volumetric term's geometric part
     clamped, elasticity.py) and solved again, and the last step is taken whether solved or not. Krylov iterations per
-    system go to ``krylov_iterations``."""
+    system go to ``krylov_iterations``. ``merit_memory``: as in ``coupled_newton``."""
     from warp.optim.linear import bicgstab, gmres
 
     tol, fixed = solver.settings.newton_tol_mm, solver._linear._fixed
@@ -201,7 +215,7 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
         return negated_free(gradient_with_lag_at_u(solver, ind), solver._fixed_mask)
 
     rhs, g_norm = gradient_at_u()
-    g_first = g_norm
+    g_first, merits = g_norm, [g_norm * g_norm]
     # the coarse level where the solver's device path has one (on a GPU), its inverse made once per load step from the
     # first Hessian at u (exact, else clamped) whose Galerkin operator is positive definite
     setup = solver._linear._coarse_setup
@@ -247,7 +261,7 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
             fem.linalg.array_axpy(x=d, y=solver.u.dof_values, alpha=1.0)
             return True, iteration, "", solver._max_penetration(ind)
         u0 = wp.clone(solver.u.dof_values)
-        merit, alpha = g_norm * g_norm, 1.0
+        merit, alpha = reference_merit(merits, merit_memory), 1.0
         while alpha > 1e-4:
             wp.copy(solver._u_try.dof_values, u0)
             fem.linalg.array_axpy(x=d, y=solver._u_try.dof_values, alpha=alpha)
@@ -256,6 +270,7 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
                 rhs_try, norm_try = gradient_at_u()
                 if norm_try * norm_try <= (1.0 - 1e-4 * alpha) * merit:
                     rhs, g_norm = rhs_try, norm_try
+                    merits.append(g_norm * g_norm)
                     break
                 wp.copy(solver.u.dof_values, u0)
             alpha *= 0.5
@@ -266,13 +281,16 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
     return False, MAX_ITERATIONS, "Newton iteration limit reached", 0.0
 
 
-def _krylov_newton(method: str):
+def newton_for(linear: str, merit_memory: int = 1):
+    """The coupled Newton whose systems ``linear`` solves (lu, gmres or bicgstab), as a ``NewtonSteps._newton``."""
     def newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
-        return coupled_newton_krylov(solver, ind, may_stall, method)
+        if linear == "lu":
+            return coupled_newton(solver, ind, may_stall, merit_memory)
+        return coupled_newton_krylov(solver, ind, may_stall, linear, merit_memory)
     return newton
 
 
-NEWTONS = {"lu": coupled_newton, "gmres": _krylov_newton("gmres"), "bicgstab": _krylov_newton("bicgstab")}
+NEWTONS = {linear: newton_for(linear) for linear in ("lu", "gmres", "bicgstab")}
 #: (lagged, coupled) Newton iterations and the coupled part's line-search halvings per load step of the last
 #: ``lagged_then_coupled`` run (the coupled ones None where the lagged part failed)
 phase_iterations: list[tuple[int, int | None, int | None]] = []
@@ -318,6 +336,8 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
          trajectory_from: Path | None = typer.Option(None, help="the indenters' motion from this scene"),
          lagged_first: bool = typer.Option(False, help="also a run whose load steps are first solved with friction's "
                                                        "first lag never moved, then by the coupled Newton from there"),
+         merit_memory: int = typer.Option(1, min=1, help="above 1, also a run of the coupled Newton whose line search "
+                                                         "compares with the largest of the last M merits"),
          md_out: Path | None = typer.Option(None, help="also write the table to this file"),
          benchmarks: bool = typer.Option(False, help=f"write the table into BENCHMARKS.md, section {SECTION}")) -> None:
     if linear not in NEWTONS:
@@ -335,6 +355,9 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
         attempt(f"lagged, {m} moves", lambda m=m: run(scene, 2, frames, trajectory_from, sequence,
                                                                   friction_lag_moves=int(m)))
     attempt("coupled (no lag)", lambda: _coupled_run(scene, frames, NEWTONS[linear], sequence, trajectory_from))
+    if merit_memory > 1:
+        attempt(f"coupled, nonmonotone line search ({merit_memory})", lambda: _coupled_run(
+            scene, frames, newton_for(linear, merit_memory), sequence, trajectory_from))
     if lagged_first:
         attempt("first lag solved, then coupled", lambda: _coupled_run(
             scene, frames, lagged_then_coupled(NEWTONS[linear]), sequence, trajectory_from))
@@ -346,9 +369,8 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
     friction = np.array([np.linalg.norm(f[0][:2]) for f in ref["forces_n"]])
     sliding = friction > 0.1 * friction.max()
     lines = [f"Machine: {machine_name(ref['device'])}. Command: `.venv/bin/python scripts/fem_coupled_friction.py "
-             f"{' '.join(sys.argv[1:])}` ({ref['scene'].replace(str(REPO) + '/', '')}"
-             f"{f' sequence {sequence}' if sequence is not None else ''}, P2, {frames} frames; {int(sliding.sum())} of "
-             "them with a friction force of at least 10 % of the largest).", "",
+             f"{' '.join(sys.argv[1:])}` ({ref['scene'].replace(str(REPO) + '/', '')}, P2, {frames} frames; "
+             f"{int(sliding.sum())} of them with a friction force of at least 10 % of the largest).", "",
              "| run | Newton iterations per frame | all frames | sliding frames | line-search halvings | friction force "
              f"per sliding frame (N) | largest lag residual (N) | markers vs {ref_name} (mm) | seconds |",
              "|---|---|---|---|---|---|---|---|---|"]

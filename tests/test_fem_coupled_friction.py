@@ -3,19 +3,23 @@ pressure, checked against central differences of the gradient with the lag at u.
 
 import sys
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
 import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+import fem_coupled_friction  # noqa: E402
 from fem_coupled_friction import (  # noqa: E402
     NEWTONS,
     coupled_newton,
     coupling_matrix,
     gradient_with_lag_at_u,
     lagged_then_coupled,
+    newton_for,
     phase_iterations,
+    reference_merit,
 )
 
 from transtac_sim.physics import ElasticMaterial, QuasiStaticSolver, RigidIndenter, SolverSettings  # noqa: E402
@@ -106,3 +110,17 @@ def test_lagged_then_coupled_newton_ends_at_the_coupled_solution():
     np.testing.assert_allclose(u_both, u_coupled, atol=1e-6)
     assert residual_both < 1e-6, residual_both
     assert len(phase_iterations) == 1 and all(n >= 1 for n in phase_iterations[0][:2]), phase_iterations
+
+
+def test_nonmonotone_line_search_compares_with_the_largest_recent_merit_and_ends_at_the_coupled_solution():
+    """``--merit-memory``: the reference is the largest of the last M accepted merits (the last one for M = 1), and the
+    coupled Newton with it solves the plate slide to the same point as the monotone one, the lag converged."""
+    assert reference_merit([3.0, 1.0, 2.0], 1) == 2.0
+    assert reference_merit([3.0, 1.0, 2.0], 2) == 2.0
+    assert reference_merit([3.0, 1.0, 0.5], 5) == 3.0
+    u_monotone, _ = _plate_slide(coupled_newton)
+    with mock.patch.object(fem_coupled_friction, "reference_merit", wraps=reference_merit) as spy:
+        u_nonmonotone, residual = _plate_slide(newton_for("lu", 5))
+    assert spy.call_count >= 1 and all(call.args[1] == 5 for call in spy.call_args_list)
+    np.testing.assert_allclose(u_nonmonotone, u_monotone, atol=1e-6)
+    assert residual < 1e-6, residual
