@@ -27,8 +27,8 @@ lag's fixed point, so its frames' ``friction_lag_residual_n`` is round-off.
 moved, then by this Newton from that solution (``lagged_then_coupled``): whether the lag's correction from a nearby
 lag's solution costs the coupled Newton only a step or two (BENCHMARKS.md ``fem_lag_then_coupled_cpu``).
 ``--merit-memory M`` (above 1) adds a run of the coupled Newton whose line search is nonmonotone: a step must lower
-|g|^2 below the largest of the last M accepted values, not the last one (``reference_merit``), so that full Newton
-steps across the contact's stick-slip changes are not cut back (BENCHMARKS.md ``fem_coupled_nonmonotone_cpu``).
+|g|^2 below the largest of the last M accepted values, not the last one (``reference_merit``), so that a full Newton
+step that raises |g|^2 for a while is not cut back (BENCHMARKS.md ``fem_coupled_nonmonotone_cpu``, ``_gpu``).
 
 Reports per run (the lagged solver with each count in ``--moves``, then this Newton): Newton iterations per frame,
 line-search halvings, the friction force per sliding frame, the largest lag residual, and the largest marker distance
