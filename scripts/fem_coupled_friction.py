@@ -1,7 +1,8 @@
 """Study: friction's normal pressure implicit in Newton (no lag loop) against the lagged solver.
 
     .venv/bin/python scripts/fem_coupled_friction.py [SCENE] [--frames 8] [--moves 4,12] [--linear lu|gmres|bicgstab]
-        [--sequence I] [--trajectory-from SCENE] [--lagged-first] [--merit-memory M] [--md-out FILE] [--benchmarks]
+        [--sequence I] [--trajectory-from SCENE] [--lagged-first] [--merit-memory M] [--contraction] [--md-out FILE]
+        [--benchmarks]
     python scripts/fem_coupled_friction.py scenes/train_random.toml --sequence 2 --moves 1,4 --linear gmres   (a GPU)
 
 The solver lags friction's normal pressure lam = k g and tangent plane n at u_lag (physics/contact.py) and moves the lag
@@ -29,6 +30,9 @@ lag's solution costs the coupled Newton only a step or two (BENCHMARKS.md ``fem_
 ``--merit-memory M`` (above 1) adds a run of the coupled Newton whose line search is nonmonotone: a step must lower
 |g|^2 below the largest of the last M accepted values, not the last one (``reference_merit``), so that a full Newton
 step that raises |g|^2 for a while is not cut back (BENCHMARKS.md ``fem_coupled_nonmonotone_cpu``, ``_gpu``).
+``--contraction`` (with ``--linear lu``) reports, per load step of the coupled run, rho(H^-1 J_c) at its Newton systems
+(``lag_contraction``): the factor by which a move of the lag shrinks the lag's error near the solution, and the rate
+of a defect correction that would solve J's systems with H's symmetric solver (BENCHMARKS.md ``fem_lag_contraction_cpu``).
 
 Reports per run (the lagged solver with each count in ``--moves``, then this Newton): Newton iterations per frame,
 line-search halvings, the friction force per sliding frame, the largest lag residual, and the largest marker distance
@@ -44,6 +48,7 @@ from pathlib import Path
 from unittest import mock
 
 import numpy as np
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import typer
 import warp as wp
@@ -123,11 +128,37 @@ def reference_merit(merits: list[float], memory: int) -> float:
     return max(merits[-memory:])
 
 
-def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False,
-                   merit_memory: int = 1) -> tuple[bool, int, str, float]:
+def lag_contraction(H: sp.spmatrix, J_c: sp.spmatrix) -> float:
+    """rho(H^-1 J_c), the spectral radius: the factor by which one move of friction's lag shrinks the lag's error near
+    a solution. Moving the lag and solving again is the fixed point u_(k+1) = solve(lag at u_k), whose linearisation is
+    H e_(k+1) = -J_c e_k (H the lagged problem's Hessian, J_c the normal pressure's share of friction's gradient,
+    ``coupling_form``). It is also the rate of the defect correction x <- H^-1 (b - J_c x) that would solve
+    (H + J_c) x = b with H's symmetric solver. 0 where J_c is zero (no contact point with friction), NaN where H is singular
+    or ARPACK fails."""
+    if not np.any(J_c.data):  # nothing slides in contact: the lag holds nothing
+        return 0.0
+    try:
+        lu = spla.splu(sp.csc_matrix(H))
+    except RuntimeError:  # singular
+        return float("nan")
+    if H.shape[0] <= 64:  # ARPACK needs k < n - 1; small systems are solved densely
+        return float(np.max(np.abs(np.linalg.eigvals(lu.solve(J_c.toarray())))))
+    op = spla.LinearOperator(H.shape, matvec=lambda x: lu.solve(J_c @ x), dtype=np.float64)
+    try:
+        values = spla.eigs(op, k=3, which="LM", return_eigenvectors=False, maxiter=5000, tol=1e-6)
+    except spla.ArpackNoConvergence as partial:
+        values = partial.eigenvalues
+    except spla.ArpackError:
+        return float("nan")
+    return float(np.max(np.abs(values))) if len(values) else float("nan")
+
+
+def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False, merit_memory: int = 1,
+                   contraction: list[list[float]] | None = None) -> tuple[bool, int, str, float]:
     """Newton on the lag-free problem for one load step, in place of ``NewtonSteps._newton`` (same result tuple;
     ``may_stall`` is ignored: no stall test). The line search compares |g|^2 with the largest of the last
-    ``merit_memory`` accepted ones (``reference_merit``; 1: with the last, a monotone search)."""
+    ``merit_memory`` accepted ones (``reference_merit``; 1: with the last, a monotone search). ``contraction``: a list
+    to which this load step appends the ``lag_contraction`` of each of its Newton systems (H the exact Hessian)."""
     free, tol = solver._linear._free, solver.settings.newton_tol_mm
 
     def gradient_at_u() -> np.ndarray:  # on the free dofs
@@ -135,9 +166,14 @@ def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False,
 
     g = gradient_at_u()
     merits = [0.5 * g @ g]
+    if contraction is not None:
+        contraction.append([])
     for iteration in range(1, MAX_ITERATIONS + 1):
-        J_c = coupling_matrix(solver, ind)
-        J = (bsr_to_scipy(solver._hessian(ind, 1.0, EXACT)) + bsr_to_scipy(J_c)).tocsr()[free][:, free].tocsc()
+        J_c = bsr_to_scipy(coupling_matrix(solver, ind))
+        H = bsr_to_scipy(solver._hessian(ind, 1.0, EXACT))
+        if contraction is not None:
+            contraction[-1].append(lag_contraction(H.tocsr()[free][:, free], J_c.tocsr()[free][:, free]))
+        J = (H + J_c).tocsr()[free][:, free].tocsc()
         try:
             d = spla.splu(J).solve(-g)
         except RuntimeError:
@@ -281,16 +317,19 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
     return False, MAX_ITERATIONS, "Newton iteration limit reached", 0.0
 
 
-def newton_for(linear: str, merit_memory: int = 1):
-    """The coupled Newton whose systems ``linear`` solves (lu, gmres or bicgstab), as a ``NewtonSteps._newton``."""
+def newton_for(linear: str, merit_memory: int = 1, contraction: bool = False):
+    """The coupled Newton whose systems ``linear`` solves (lu, gmres or bicgstab), as a ``NewtonSteps._newton``;
+    ``contraction`` (lu only): each system's ``lag_contraction`` goes to ``lag_contractions``, a list per load step."""
     def newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
         if linear == "lu":
-            return coupled_newton(solver, ind, may_stall, merit_memory)
+            return coupled_newton(solver, ind, may_stall, merit_memory, lag_contractions if contraction else None)
         return coupled_newton_krylov(solver, ind, may_stall, linear, merit_memory)
     return newton
 
 
 NEWTONS = {linear: newton_for(linear) for linear in ("lu", "gmres", "bicgstab")}
+#: ``lag_contraction`` of each Newton system, a list per load step, of the last run made with ``--contraction``
+lag_contractions: list[list[float]] = []
 #: (lagged, coupled) Newton iterations and the coupled part's line-search halvings per load step of the last
 #: ``lagged_then_coupled`` run (the coupled ones None where the lagged part failed)
 phase_iterations: list[tuple[int, int | None, int | None]] = []
@@ -322,10 +361,12 @@ def _coupled_run(scene: Path, frames: int, newton, sequence: int | None, traject
     krylov_iterations.clear()
     krylov_unsolved.update(exact=0, both=0)
     phase_iterations.clear()
+    lag_contractions.clear()
     # put back as it was: _newton is inherited (newton.py), so no copy is left on the subclass
     with mock.patch.object(QuasiStaticSolver, "_newton", newton):
         result = run(scene, 2, frames, trajectory_from, sequence)
-    return result | {"krylov": (list(krylov_iterations), dict(krylov_unsolved)), "phases": list(phase_iterations)}
+    return result | {"krylov": (list(krylov_iterations), dict(krylov_unsolved)), "phases": list(phase_iterations),
+                     "contraction": [list(c) for c in lag_contractions]}
 
 
 def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_slide.toml"),
@@ -338,10 +379,14 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                                                        "first lag never moved, then by the coupled Newton from there"),
          merit_memory: int = typer.Option(1, min=1, help="above 1, also a run of the coupled Newton whose line search "
                                                          "compares with the largest of the last M merits"),
+         contraction: bool = typer.Option(False, help="with --linear lu: rho(H^-1 J_c) of each Newton system of the "
+                                                      "coupled run, the rate at which moves of friction's lag converge"),
          md_out: Path | None = typer.Option(None, help="also write the table to this file"),
          benchmarks: bool = typer.Option(False, help=f"write the table into BENCHMARKS.md, section {SECTION}")) -> None:
     if linear not in NEWTONS:
         raise typer.BadParameter(f"--linear {linear!r}: allowed {', '.join(NEWTONS)}")
+    if contraction and linear != "lu":
+        raise typer.BadParameter(f"--contraction needs --linear lu (the host LU of H), not {linear!r}")
     runs, failed = {}, {}
 
     def attempt(name: str, solve) -> None:  # a run whose frame fails is reported, not the end of the study
@@ -354,7 +399,8 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
     for m in moves.split(","):
         attempt(f"lagged, {m} moves", lambda m=m: run(scene, 2, frames, trajectory_from, sequence,
                                                                   friction_lag_moves=int(m)))
-    attempt("coupled (no lag)", lambda: _coupled_run(scene, frames, NEWTONS[linear], sequence, trajectory_from))
+    attempt("coupled (no lag)", lambda: _coupled_run(scene, frames, newton_for(linear, contraction=contraction),
+                                                     sequence, trajectory_from))
     if merit_memory > 1:
         attempt(f"coupled, nonmonotone line search ({merit_memory})", lambda: _coupled_run(
             scene, frames, newton_for(linear, merit_memory), sequence, trajectory_from))
@@ -390,6 +436,10 @@ def main(scene: Path = typer.Argument(REPO / "tests" / "fixtures" / "tiny_press_
                       f"{int(np.median(iterations))}, max {max(iterations)}, {len(iterations)} systems; "
                       f"{unsolved['exact']} not solved with the exact Hessian within {KRYLOV_MAXITER[EXACT]} (the "
                       f"clamped one taken), {unsolved['both']} with neither (within {KRYLOV_MAXITER[CLAMPED]})."]
+        if r.get("contraction"):
+            lines += ["", f"{name}, rho(H^-1 J_c) per load step (a failed one included) at its last Newton system, "
+                      "at the step's solution where it converged (the largest over its systems): " + ", ".join(
+                          f"{c[-1]:.3g} ({np.nanmax(c):.3g})" for c in r["contraction"]) + "."]
         if r.get("phases"):
             lines += ["", f"{name}, Newton iterations per load step, first lag never moved + coupled (the coupled "
                       "part's line-search halvings): " + ", ".join(
