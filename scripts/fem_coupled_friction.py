@@ -135,7 +135,7 @@ def lag_contraction(H: sp.spmatrix, J_c: sp.spmatrix) -> float:
     ``coupling_form``). It is also the rate of the defect correction x <- H^-1 (b - J_c x) that would solve
     (H + J_c) x = b with H's symmetric solver. 0 where J_c is zero (no contact point with friction), NaN where H is singular
     or ARPACK fails."""
-    if not np.any(J_c.data):  # nothing slides in contact: the lag holds nothing
+    if not np.any(J_c.data):  # no contact point with friction: the lag holds nothing
         return 0.0
     try:
         lu = spla.splu(sp.csc_matrix(H))

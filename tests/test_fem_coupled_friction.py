@@ -1,5 +1,7 @@
 """scripts/fem_coupled_friction.py: its coupling term is the derivative of friction's gradient through the normal
-pressure, checked against central differences of the gradient with the lag at u."""
+pressure (checked against central differences of the gradient with the lag at u); its Newtons (host LU, device Krylov,
+lagged first, nonmonotone) end at the lag's fixed point; ``lag_contraction`` is rho(H^-1 J_c) and the rate of the lag's
+moves."""
 
 import dataclasses
 import sys
