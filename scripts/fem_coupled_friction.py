@@ -42,6 +42,7 @@ this CPU.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 from pathlib import Path
@@ -335,18 +336,26 @@ lag_contractions: list[list[float]] = []
 phase_iterations: list[tuple[int, int | None, int | None]] = []
 
 
+@contextlib.contextmanager
+def lag_held(solver: QuasiStaticSolver):
+    """Within it, the solver's Newton never moves friction's lag (``friction_lag_moves`` 0); its settings are put back
+    after."""
+    kept = solver.settings
+    solver.settings = dataclasses.replace(kept, friction_lag_moves=0)
+    try:
+        yield
+    finally:
+        solver.settings = kept
+
+
 def lagged_then_coupled(newton):
     """A Newton for one load step, in place of ``NewtonSteps._newton``: the solver's own Newton with friction's first
     lag (the warm start's, newton.py ``_solve_step``) never moved, then ``newton`` (the coupled one) from its solution.
     The question it answers: is the coupled Newton quadratic from the solution of a nearby lag, so that the lag's
     correction costs a step or two? Iterations of both parts are summed; the split goes to ``phase_iterations``."""
     def solve(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
-        kept = solver.settings
-        solver.settings = dataclasses.replace(kept, friction_lag_moves=0)
-        try:
+        with lag_held(solver):
             ok, lagged, why, pen = NewtonSteps._newton(solver, ind, may_stall)
-        finally:
-            solver.settings = kept
         if not ok:
             phase_iterations.append((lagged, None, None))
             return ok, lagged, why, pen
