@@ -12,6 +12,8 @@ the iterations and the matrix-vector products with H per iteration (what a GPU i
 
 - ``two-level``: the device CG's own, block-Jacobi D^-1 plus the coarse correction P A_c^-1 P^T on rigid-body modes of
   aggregates (physics/coarse_space.py); its iterations should match the device CG's (printed beside it);
+- ``two-level, grid cells as aggregates``: the same count of aggregates, but the grid cells themselves, whatever their
+  node counts (coarse_space.py before BENCHMARKS.md ``fem_coarse_aggregates``);
 - ``two-level, N coarse unknowns``: the same with about 5 times as many aggregates (a larger dense coarse inverse);
 - ``smoothed aggregation``: P smoothed once, (I - w D^-1 H) P with w = 4 / (3 lambda_max(D^-1 H)) (Vanek et al.);
 - ``P1 level, exact``: D^-1 plus the P2 element's own linear (P1) subspace solved exactly, Q (Q^T H Q)^-1 Q^T with Q
@@ -122,14 +124,32 @@ def _diagonal_blocks(H: sp.csr_matrix, n: int) -> np.ndarray:
 
 
 def _aggregate_prolongation(positions_mm, fixed, cell_mm: float, cells_factor: float = 1.0) -> sp.csr_matrix:
-    """P of coarse_space.py (rigid-body modes of grid-cell aggregates) with about ``cells_factor`` times its cells: cells of
-    cell_mm / cells_factor^(1/3), at most cells_factor x sqrt(nodes) of them."""
+    """P of coarse_space.py (rigid-body modes of aggregates) with about ``cells_factor`` times its aggregates: as many
+    as cells of cell_mm / cells_factor^(1/3), at most cells_factor x sqrt(nodes) of them."""
     counts = coarse_space._cell_counts
     coarse_space._cell_counts = lambda extent, cell, nodes: counts(extent, cell, int(cells_factor ** 2 * nodes))
     try:
         aggregate, basis, count = coarse_space._bases(positions_mm, fixed, cell_mm / cells_factor ** (1 / 3))
     finally:
         coarse_space._cell_counts = counts
+    return _prolongation(aggregate, basis, count)
+
+
+def _grid_cell_prolongation(positions_mm, fixed, cell_mm: float) -> sp.csr_matrix:
+    """P with the aggregates coarse_space.py had before ``fem_coarse_aggregates``: the grid cells themselves (as many
+    as coarse_space.py makes, over the nodes' bounding box), whatever their node counts."""
+    lo, hi = positions_mm.min(axis=0), positions_mm.max(axis=0)
+    cells = coarse_space._cell_counts(hi - lo, cell_mm, len(positions_mm))
+    size = np.where(hi > lo, (hi - lo) / cells, 1.0)
+    index = np.minimum(np.floor((positions_mm - lo) / size).astype(int), cells - 1)
+    _, aggregate = np.unique((index[:, 0] * cells[1] + index[:, 1]) * cells[2] + index[:, 2], return_inverse=True)
+    aggregate = aggregate.reshape(-1)
+    count = int(aggregate.max()) + 1
+    return _prolongation(aggregate, coarse_space.rigid_modes(positions_mm, fixed, aggregate, count), count)
+
+
+def _prolongation(aggregate: np.ndarray, basis: np.ndarray, count: int) -> sp.csr_matrix:
+    """P (3 nodes x 6 aggregates) from each node's aggregate and its B_i (n, 3, 6)."""
     n = len(aggregate)
     rows = np.repeat(3 * np.arange(n)[:, None] + np.arange(3), 6, axis=1).reshape(n, 3, 6)
     cols = np.broadcast_to((6 * aggregate[:, None] + np.arange(6))[:, None, :], (n, 3, 6))
@@ -200,6 +220,7 @@ def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
     lam = _lambda_max(H, D_inv, free)
     P = _aggregate_prolongation(positions, fixed, cell_mm)
     coarse = _coarse_solver(H, P)
+    grid = _coarse_solver(H, _grid_cell_prolongation(positions, fixed, cell_mm))
     P6 = _aggregate_prolongation(positions, fixed, cell_mm, 6.0)
     coarse6 = _coarse_solver(H, P6)
     smoothed = _coarse_solver(H, (P - (4.0 / (3.0 * lam)) * (D_inv @ (H @ P))).tocsr())
@@ -215,6 +236,7 @@ def _preconditioners(s: System, solver: QuasiStaticSolver) -> dict:
         return x + _chebyshev(H, D_inv, r - H @ x, 2, bound)
 
     return {f"two-level (the device CG's; {P.shape[1]} coarse unknowns)": (lambda r: D_inv @ r + coarse(r), 1),
+            "two-level, grid cells as aggregates": (lambda r: D_inv @ r + grid(r), 1),
             f"two-level, {P6.shape[1]} coarse unknowns": (lambda r: D_inv @ r + coarse6(r), 1),
             "smoothed aggregation": (lambda r: D_inv @ r + smoothed(r), 1),
             "P1 level, exact": (lambda r: D_inv @ r + Q @ p1.solve(Q.T @ r), 1),

@@ -89,9 +89,9 @@ class Physics(_Strict):
         default="auto", description="direct: sparse Cholesky/LU on the host; cg: Warp's CG on the device; "
         "auto: cg on a GPU, else direct")
     coarse_cell_mm: float = Field(
-        default=3.0, ge=0.0, le=100.0, description="the device CG's two-level preconditioner: rigid-body modes of "
-        "the nodes in grid cells of about this size are solved for directly (transtac_sim/physics/coarse_space.py); "
-        "0: block-Jacobi alone")
+        default=3.0, ge=0.0, le=100.0, description="the device CG's two-level preconditioner: the rigid-body modes "
+        "of aggregates of nodes are solved for directly, as many aggregates as the gel has cells of about this size "
+        "(at most sqrt(nodes)), each of as many nodes (transtac_sim/physics/coarse_space.py); 0: block-Jacobi alone")
 
 
 class Render(_Strict):

@@ -2,9 +2,12 @@
 
 Block-Jacobi alone (definite_cg.py) removes only what is local to a node; the slowly varying part of the error, which
 spans the whole gel, takes CG many iterations to spread (150-500 per Newton system on press_slide,
-BENCHMARKS.md ``fem_slide_iterations_gpu``). The coarse level solves for that part directly. The nodes are grouped
-into aggregates, the cells of a grid of about ``cell_mm`` over the gel's bounding box, and each aggregate a carries
-six coarse unknowns, a translation t_a and a small rotation w_a (mm, rad). The prolongation P maps them to the nodes:
+BENCHMARKS.md ``fem_slide_iterations_gpu``). The coarse level solves for that part directly. The free nodes are split
+into aggregates of equal node counts by recursive coordinate bisection (``_aggregates``), as many as the gel's bounding
+box has grid cells of about ``cell_mm`` (at most sqrt(nodes), ``_cell_counts``), so that on a mesh refined under the
+contact more of them lie there: on press_slide's Newton systems 0.82-0.83x the CG iterations of the grid cells
+themselves as aggregates (BENCHMARKS.md ``fem_coarse_aggregates``). Each aggregate a carries six coarse unknowns, a
+translation t_a and a small rotation w_a (mm, rad). The prolongation P maps them to the nodes:
 
     (P y)_i = f_i o (t_a + w_a x c_i) = B_i y_a,      B_i = diag(f_i) [ I | -[c_i]x ]   (3 x 6),
 
@@ -34,6 +37,7 @@ import time
 import numpy as np
 import warp as wp
 from scipy.linalg import lapack
+from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from transtac_sim.physics.sparse_product import block_row_range
@@ -120,17 +124,46 @@ def prolong(basis: wp.array(dtype=mat36d), aggregate: wp.array(dtype=int), value
     return basis[i] * y
 
 
+def _aggregates(positions_mm: np.ndarray, fixed: np.ndarray, count: int) -> tuple[np.ndarray, int]:
+    """(aggregate of each node, aggregates): the free nodes (those with a free component) split into min(``count``,
+    free nodes) parts whose sizes differ by at most a few nodes, by recursive coordinate bisection: a part of k
+    aggregates is cut across its longest extent so that each side holds its share of nodes for k // 2 and k - k // 2
+    aggregates. A node with every component fixed joins its nearest free node's aggregate (its B_i is 0 either way)."""
+    free = np.flatnonzero(~fixed.all(axis=1))
+    aggregate = np.zeros(len(positions_mm), dtype=int)
+    if len(free) == 0:
+        return aggregate, 1
+    parts, made = [(free, min(count, len(free)))], 0
+    while parts:
+        nodes, k = parts.pop()
+        if k == 1:
+            aggregate[nodes] = made
+            made += 1
+            continue
+        p = positions_mm[nodes]
+        order = nodes[np.argsort(p[:, np.argmax(np.ptp(p, axis=0))], kind="stable")]
+        low = k // 2
+        cut = int(round(len(order) * low / k))  # >= low nodes on one side, >= k - low on the other: len(order) >= k
+        parts += [(order[cut:], k - low), (order[:cut], low)]
+    held = np.flatnonzero(fixed.all(axis=1))
+    if len(held):
+        aggregate[held] = aggregate[free[cKDTree(positions_mm[free]).query(positions_mm[held])[1]]]
+    return aggregate, made
+
+
 def _bases(positions_mm: np.ndarray, fixed: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """(aggregate of each node, B_i of each node (n, 3, 6), aggregates): the grid cells of about ``cell_mm`` over the
-    nodes' bounding box (the same count of cells along an axis spans it evenly), larger where that would make more
-    than sqrt(nodes) cells (``_cell_counts``)."""
-    lo, hi = positions_mm.min(axis=0), positions_mm.max(axis=0)
-    cells = _cell_counts(hi - lo, cell_mm, len(positions_mm))
-    size = np.where(hi > lo, (hi - lo) / cells, 1.0)
-    index = np.minimum(np.floor((positions_mm - lo) / size).astype(int), cells - 1)
-    _, aggregate = np.unique((index[:, 0] * cells[1] + index[:, 1]) * cells[2] + index[:, 2], return_inverse=True)
-    aggregate = aggregate.reshape(-1)
-    count = int(aggregate.max()) + 1
+    """(aggregate of each node, B_i of each node (n, 3, 6), aggregates): ``_aggregates``, as many as the nodes'
+    bounding box has grid cells of about ``cell_mm`` (fewer, larger cells where that would make more than sqrt(nodes),
+    ``_cell_counts``)."""
+    cells = _cell_counts(positions_mm.max(axis=0) - positions_mm.min(axis=0), cell_mm, len(positions_mm))
+    aggregate, count = _aggregates(positions_mm, fixed, int(cells.prod()))
+    return aggregate, rigid_modes(positions_mm, fixed, aggregate, count), count
+
+
+def rigid_modes(positions_mm: np.ndarray, fixed: np.ndarray, aggregate: np.ndarray, count: int) -> np.ndarray:
+    """B_i of each node (n, 3, 6) for the aggregates ``aggregate`` (of each node, ``count`` of them): the aggregate's
+    translations and rotations about its free nodes' centroid, the rotations left out where it has fewer than 4 free
+    nodes or they lie near a line (``ROTATION_SPREAD``), 0 on the fixed components."""
     free_node = ~fixed.all(axis=1)
     members = np.bincount(aggregate[free_node], minlength=count)
     centroid = np.zeros((count, 3))
@@ -150,7 +183,7 @@ def _bases(positions_mm: np.ndarray, fixed: np.ndarray, cell_mm: float) -> tuple
     basis[:, :, 4] = np.stack([z, zero, -x], axis=1)  # e_y x c
     basis[:, :, 5] = np.stack([-y, x, zero], axis=1)  # e_z x c
     basis *= (~fixed)[:, :, None]
-    return aggregate, basis, count
+    return basis
 
 
 def _cell_counts(extent_mm: np.ndarray, cell_mm: float, nodes: int) -> np.ndarray:

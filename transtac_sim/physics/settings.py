@@ -51,8 +51,8 @@ class SolverSettings:
     # (tests/test_physics_solver.py ``test_sticking_*``)
     friction_memory: bool = True
     contact_quadrature_order: int | None = None  # None: 2 * degree
-    # the device CG's coarse level (coarse_space.py): aggregates of nodes in grid cells of about this size (mm), whose
-    # rigid-body modes are solved for directly; None: block-Jacobi alone
+    # the device CG's coarse level (coarse_space.py): as many aggregates of equal node counts as the gel has cells of
+    # about this size (mm), whose rigid-body modes are solved for directly; None: block-Jacobi alone
     coarse_cell_mm: float | None = 3.0
     fixed_z_tol_mm: float = 1.0e-6  # default fixed mask: z <= this
     # inversion barrier (elasticity.py): acts where det F < barrier_det_f at the 4 check points of a tet, with
