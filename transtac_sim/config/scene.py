@@ -91,7 +91,8 @@ class Physics(_Strict):
     coarse_cell_mm: float = Field(
         default=3.0, ge=0.0, le=100.0, description="the device CG's two-level preconditioner: the rigid-body modes "
         "of aggregates of nodes are solved for directly, as many aggregates as the gel has cells of about this size "
-        "(at most sqrt(nodes)), each of as many nodes (transtac_sim/physics/coarse_space.py); 0: block-Jacobi alone")
+        "(at most sqrt(nodes)), each holding the same number of nodes (transtac_sim/physics/coarse_space.py); "
+        "0: block-Jacobi alone")
 
 
 class Render(_Strict):

@@ -5,9 +5,10 @@ spans the whole gel, takes CG many iterations to spread (150-500 per Newton syst
 BENCHMARKS.md ``fem_slide_iterations_gpu``). The coarse level solves for that part directly. The free nodes are split
 into aggregates of equal node counts by recursive coordinate bisection (``_aggregates``), as many as the gel's bounding
 box has grid cells of about ``cell_mm`` (at most sqrt(nodes), ``_cell_counts``), so that on a mesh refined under the
-contact more of them lie there: on press_slide's Newton systems 0.82-0.83x the CG iterations of the grid cells
-themselves as aggregates (BENCHMARKS.md ``fem_coarse_aggregates``). Each aggregate a carries six coarse unknowns, a
-translation t_a and a small rotation w_a (mm, rad). The prolongation P maps them to the nodes:
+contact more of them lie there: on press_slide's Newton systems 0.82x the CG iterations of the grid cells themselves
+as aggregates (a CPU study), and the device CG 0.87-0.91x per solve on an H100 (BENCHMARKS.md
+``fem_coarse_aggregates``). Each aggregate a carries six coarse unknowns, a translation t_a and a small rotation w_a
+(mm, rad). The prolongation P maps them to the nodes:
 
     (P y)_i = f_i o (t_a + w_a x c_i) = B_i y_a,      B_i = diag(f_i) [ I | -[c_i]x ]   (3 x 6),
 
@@ -153,8 +154,8 @@ def _aggregates(positions_mm: np.ndarray, fixed: np.ndarray, count: int) -> tupl
 
 def _bases(positions_mm: np.ndarray, fixed: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray, int]:
     """(aggregate of each node, B_i of each node (n, 3, 6), aggregates): ``_aggregates``, as many as the nodes'
-    bounding box has grid cells of about ``cell_mm`` (fewer, larger cells where that would make more than sqrt(nodes),
-    ``_cell_counts``)."""
+    bounding box has grid cells of about ``cell_mm``, or fewer where that would be more than sqrt(nodes)
+    (``_cell_counts``)."""
     cells = _cell_counts(positions_mm.max(axis=0) - positions_mm.min(axis=0), cell_mm, len(positions_mm))
     aggregate, count = _aggregates(positions_mm, fixed, int(cells.prod()))
     return aggregate, rigid_modes(positions_mm, fixed, aggregate, count), count
