@@ -135,17 +135,27 @@ def _aggregate_prolongation(positions_mm, fixed, cell_mm: float, cells_factor: f
     return _prolongation(aggregate, basis, count)
 
 
-def _grid_cell_prolongation(positions_mm, fixed, cell_mm: float) -> sp.csr_matrix:
-    """P with the aggregates coarse_space.py had before ``fem_coarse_aggregates``: the grid cells themselves (as many
-    as coarse_space.py makes, over the nodes' bounding box), whatever their node counts."""
+def _grid_cell_aggregates(positions_mm, cell_mm: float) -> tuple[np.ndarray, int]:
+    """(aggregate of each node, aggregates) as coarse_space.py had them before ``fem_coarse_aggregates``: the grid cells
+    themselves (as many as coarse_space.py makes, over the nodes' bounding box), whatever their node counts."""
     lo, hi = positions_mm.min(axis=0), positions_mm.max(axis=0)
     cells = coarse_space._cell_counts(hi - lo, cell_mm, len(positions_mm))
     size = np.where(hi > lo, (hi - lo) / cells, 1.0)
     index = np.minimum(np.floor((positions_mm - lo) / size).astype(int), cells - 1)
     _, aggregate = np.unique((index[:, 0] * cells[1] + index[:, 1]) * cells[2] + index[:, 2], return_inverse=True)
-    aggregate = aggregate.reshape(-1)
-    count = int(aggregate.max()) + 1
+    return aggregate.reshape(-1), int(aggregate.max()) + 1
+
+
+def _grid_cell_prolongation(positions_mm, fixed, cell_mm: float) -> sp.csr_matrix:
+    """P with the grid cells as aggregates (``_grid_cell_aggregates``)."""
+    aggregate, count = _grid_cell_aggregates(positions_mm, cell_mm)
     return _prolongation(aggregate, coarse_space.rigid_modes(positions_mm, fixed, aggregate, count), count)
+
+
+def _free_nodes_per_aggregate(aggregate: np.ndarray, count: int, fixed: np.ndarray) -> str:
+    """"min / median / max" of the free nodes in each aggregate."""
+    sizes = np.bincount(aggregate[~fixed.all(axis=1)], minlength=count)
+    return f"{sizes.min()} / {np.median(sizes):g} / {sizes.max()}"
 
 
 def _prolongation(aggregate: np.ndarray, basis: np.ndarray, count: int) -> sp.csr_matrix:
@@ -257,9 +267,14 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
         print(f"system {i + 1} of {len(chosen)} (frame {s.frame}): "
               + ", ".join(f"{name} {its}" for name, (its, _) in found.items()), flush=True)
     names = list(rows[0][1])
+    positions, fixed = solver._node_positions.numpy(), solver._fixed_nodes
+    aggregate, count = coarse_space._bases(positions, fixed, solver.settings.coarse_cell_mm)[::2]
     print(f"\n{scene}, frames 0-{frames - 1} on the CPU (device path), {len(systems)} Newton systems, every {every}-th "
-          f"studied; {solver._node_positions.shape[0]} P2 nodes. CG iterations to each system's rtol (negative: stopped "
-          "at p . H p <= 0), products with H per iteration in the header:\n")
+          f"studied; {len(positions)} P2 nodes, {count} aggregates holding min / median / max free nodes "
+          f"{_free_nodes_per_aggregate(aggregate, count, fixed)} (as grid cells: "
+          f"{_free_nodes_per_aggregate(*_grid_cell_aggregates(positions, solver.settings.coarse_cell_mm), fixed)}). "
+          "CG iterations to each system's rtol (negative: stopped at p . H p <= 0), products with H per iteration in "
+          "the header:\n")
     print("| frame | rtol | device CG | " + " | ".join(f"{n} ({rows[0][1][n][1]})" for n in names) + " |")
     print("|---|---|---|" + "---|" * len(names))
     for s, found in rows:
