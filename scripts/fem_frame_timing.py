@@ -176,12 +176,13 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
          press_lag_move_ratio: float | None = solver_variants.PRESS_LAG_MOVE_RATIO_OPTION,
+         contact_prediction: bool = solver_variants.CONTACT_PREDICTION_OPTION,
          estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
          estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
          estimate_band: str | None = solver_variants.ESTIMATE_BAND_OPTION,
          friction_memory: bool = solver_variants.FRICTION_MEMORY_OPTION) -> None:
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
-                          press_lag_move_ratio)
+                          press_lag_move_ratio, contact_prediction)
     solver_variants.solver_settings(friction_memory=friction_memory, **(
         {"max_newton_iterations": max_newton_iterations} if max_newton_iterations is not None else {}))
     if not friction_memory:

@@ -69,7 +69,8 @@ from transtac_sim.simulation import simulate_frames
 
 PHASES = {
     QuasiStaticSolver: ("_gradient", "_energy", "_energy_and_min_det", "_hessian", "_min_det", "_max_penetration",
-                        "_update_lag", "_move_lag", "_warm_start", "_carried", "_indenter_struct"),
+                        "_update_lag", "_move_lag", "_warm_start", "_carried", "_indenter_struct",
+                        "_predicted_points", "_predict_contact"),  # contact_prediction.py
     CoarseSpace: ("update",),  # the coarse level's Galerkin operator and its inverse (coarse_space.py)
     LinearSolver: ("solve", "solve_last", "_cg"),  # solve / solve_last exclusive of _cg: the set-up (sums, projection,
     # preconditioner; on the host path the conversion and factorisation), _cg: the device CG iterations
@@ -138,6 +139,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
          press_lag_move_ratio: float | None = solver_variants.PRESS_LAG_MOVE_RATIO_OPTION,
+         contact_prediction: bool = solver_variants.CONTACT_PREDICTION_OPTION,
          estimate_rtol: float = solver_variants.ESTIMATE_RTOL_OPTION,
          estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
@@ -164,7 +166,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
-                          press_lag_move_ratio)
+                          press_lag_move_ratio, contact_prediction)
     step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
     if oracle_lag:
         with np.load(oracle_lag) as kept:

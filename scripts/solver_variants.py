@@ -13,6 +13,10 @@ from transtac_sim.physics import device_linear, newton, settings
 from transtac_sim.physics.newton import NewtonSteps
 
 try:
+    from transtac_sim.physics.contact_prediction import ContactPrediction
+except ImportError:  # an older package tree through PYTHONPATH: it had no contact prediction to switch off
+    ContactPrediction = type("ContactPrediction", (), {})
+try:
     from transtac_sim.physics.warm_start import WarmStart
 except ImportError:  # an older package tree through PYTHONPATH (a before/after comparison): newton.py had it
     from transtac_sim.physics.newton import NewtonSteps as WarmStart
@@ -23,14 +27,16 @@ WARM_STARTS = ("all", "extrapolated", "none", "carried")
 def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
           lag_move_ratio: float | None = None, estimate_rtol: float = device_linear.ESTIMATE_RTOL,
           estimate_cap_factor: float = device_linear.ESTIMATE_CAP_FACTOR, estimate_band: str | None = None,
-          press_lag_move_ratio: float | None = None) -> None:
+          press_lag_move_ratio: float | None = None, contact_prediction: bool = True) -> None:
     """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not
     the slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against
     the last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
     newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``:
     the device's step estimate (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``:
     newton.ESTIMATE_REFINE_BAND as "LO,HI" (None: as it is); ``press_lag_move_ratio``: on load steps that only press,
-    the ratio in place of newton.LAG_MOVE_RATIOS (``_moves_lag_at_on_presses``; None: as on other steps)."""
+    the ratio in place of newton.LAG_MOVE_RATIOS (``_moves_lag_at_on_presses``; None: as on other steps);
+    ``contact_prediction``: off, Newton takes its steps without contact_prediction.py's second solve (the solver
+    before it)."""
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
     if estimate_band is not None:
@@ -40,6 +46,8 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
         newton.LAG_MOVE_RATIOS = dict.fromkeys(newton.LAG_MOVE_RATIOS, lag_move_ratio)
     if press_lag_move_ratio is not None:
         _moves_lag_at_on_presses(press_lag_move_ratio)
+    if not contact_prediction:
+        ContactPrediction._predict_contact = lambda self, *args: None
     device_linear.ESTIMATE_RTOL = estimate_rtol
     device_linear.ESTIMATE_CAP_FACTOR = estimate_cap_factor
     if warm_start == "carried":
@@ -185,3 +193,6 @@ FRICTION_LAG_MOVES_OPTION = typer.Option(None, min=1, help="replace the scene's 
 FRICTION_MEMORY_OPTION = typer.Option(True, "--friction-memory/--no-friction-memory",
                                       help="carry friction's sticking stretch from step to step "
                                       "(SolverSettings.friction_memory; off: each step's slip afresh, the model before)")
+CONTACT_PREDICTION_OPTION = typer.Option(True, "--contact-prediction/--no-contact-prediction",
+                                         help="solve a Newton step again with the contact it predicts "
+                                         "(physics/contact_prediction.py; off: the solver before it)")

@@ -266,12 +266,13 @@ def main(scene: Path, sequence: int = typer.Option(0, min=0), frames: int = type
          warm_start_distance: bool = typer.Option(False, help="print how far each sub-step's start and warm-start "
                                                   "guesses lay from its solution"),
          warm_start: str = solver_variants.WARM_START_OPTION,
+         contact_prediction: bool = solver_variants.CONTACT_PREDICTION_OPTION,
          curvature: bool = typer.Option(False, help="where the device CG finds the exact Hessian not positive "
                                         "definite, print its direction's curvature and where it lies")) -> None:
     if mode not in ("physics", "worker"):
         raise typer.BadParameter(f"--mode must be physics or worker, got {mode!r}")
     faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=False)
-    solver_variants.apply(warm_start)
+    solver_variants.apply(warm_start, contact_prediction=contact_prediction)
     if warm_start_distance:
         _trace_warm_start()
     if curvature:  # before --newton's wrappers, which would otherwise label the refused system by its extra Hessians

@@ -36,7 +36,7 @@ from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
 
 @wp.kernel(enable_backward=False)
-def _add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), total: wp.array(dtype=wp.mat33d)):
+def add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), total: wp.array(dtype=wp.mat33d)):
     """total[slots[k]] += part[k]: a part's blocks added at their places in the sum (each place once per part)."""
     k = wp.tid()
     total[slots[k]] = total[slots[k]] + part[k]
@@ -257,7 +257,7 @@ class Assembly:
         self._volumetric.add_to(H, self.u.dof_values, self._params, geometric, clamp, self._barrier_tets)
         for name, part in parts.items():
             slots = self._sum_slots(name, part)
-            wp.launch(_add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
+            wp.launch(add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
 
     def _contact_subset(self, ind):
         """The contact sides the Hessian is integrated over (contact_sides.py: those with a normal or friction

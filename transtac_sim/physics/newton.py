@@ -61,6 +61,13 @@ and step estimate stay on the device and are reduced there to the scalars this l
 into its cap and being thrown away, with friction's lag then moved at a closer remaining step (``LAG_MOVE_RATIOS``;
 ``fem_step_estimate``); the line search's energy and det F replay CUDA graphs (replay.py; ``fem_graph_replay_gpu``), and
 so do the gradient and Hessian assembly (0.90-0.93x on an H200, ``fem_gradient_hessian_replay_gpu``).
+
+Issue 12, seventh pass (contact_prediction.py; BENCHMARKS.md ``fem_contact_prediction_gpu``): on a release the gel
+springs back into the lifting indenter, and the full Newton steps, which see the contact only where it is at u, went
+into the indenter and were cut back by the line search (press_slide's release frame: 24-29 Newton iterations). On
+steps that lift an indenter, a refused full step is now solved again with the contact it predicts (a primal-dual active
+set step on the penalty term): the release frame takes 12-13, press_slide's median per frame falls from 15.5 to 12.5,
+and its time per frame is unchanged within the runs' spread on an H100.
 """
 
 from __future__ import annotations
@@ -72,6 +79,7 @@ from scipy.spatial.transform import Rotation
 
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
 from transtac_sim.physics.reductions import max_abs, negated_free, step_summary
+from transtac_sim.physics.warm_start import lifts_off
 
 #: Inexact Newton (Eisenstat & Walker 1996): the CG (device; on the host, preconditioned with the kept factorisation,
 #: linear.py) solves each Newton system to a relative residual
@@ -127,11 +135,12 @@ ESTIMATE_REFINED_BELOW = 10.0
 class NewtonSteps:
     """Newton's method for ``QuasiStaticSolver`` (which provides the fields, assembly and linear solver)."""
 
-    def _newton(self, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+    def _newton(self, ind, may_stall: bool = False, lifting: bool = False) -> tuple[bool, int, str, float]:
         """Minimises E over u, from self.u, for one (sub)step: (converged, Newton iterations, why not, the
         largest penetration (mm) at the solution). With ``may_stall`` (the step can still be halved) it gives up after
         ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less (counted afresh after a lag move or a
-        stiffness raise: they change E).
+        stiffness raise: they change E). With ``lifting`` (the step lifts an indenter off the gel), a full step refused
+        by its energy is solved again with the contact it predicts (contact_prediction.py) and that full step is tried.
 
         Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag
         move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
@@ -185,8 +194,9 @@ class NewtonSteps:
             ladder = self._hessian_ladder()
             for rung, (geometric, clamp) in enumerate(ladder):  # all but the last must be positive definite
                 # near convergence (the step below EXACT_BELOW tol) the step's length decides the convergence test
-                du = self._linear.solve(self._hessian(ind, geometric, clamp), rhs, definite=rung < len(ladder) - 1,
-                                        rtol=rtol, exact_below=EXACT_BELOW * tol, guess=estimate)
+                H = self._hessian(ind, geometric, clamp)
+                du = self._linear.solve(H, rhs, definite=rung < len(ladder) - 1, rtol=rtol,
+                                        exact_below=EXACT_BELOW * tol, guess=estimate)
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
@@ -197,6 +207,8 @@ class NewtonSteps:
             else:
                 return False, iterations, "Newton direction is not a descent direction", 0.0
             alpha = 1.0 if step_max >= tol or self._linear.last_shift else 0.0  # a shifted step tests nothing
+            may_predict = lifting and ind.count > 0 and alpha == 1.0 and not self._linear.last_shift
+            newton_step = None  # (du, du . rhs, max |du|, its next alpha) while a predicted step is tried in its place
             while alpha > 1e-6:
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
                 fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=alpha)
@@ -205,13 +217,28 @@ class NewtonSteps:
                     if (det_try if det_try is not None else self._min_det(self._u_try)) > 0.0:
                         break
                     inverted = True
-                    alpha *= 0.5
+                    cut = 0.5
                 elif np.isfinite(e_try) and e_try > energy + slope * alpha:
                     # the minimiser of the parabola through E(0), E'(0) and E(alpha), kept within [0.1, 0.5] alpha
-                    alpha *= float(np.clip(-0.5 * slope * alpha / (e_try - energy - slope * alpha), 0.1, 0.5))
+                    cut = float(np.clip(-0.5 * slope * alpha / (e_try - energy - slope * alpha), 0.1, 0.5))
                 else:
-                    alpha *= 0.5
+                    cut = 0.5
                 self.stats["backtracks"] += 1
+                # a full step refused by its energy (not by NaN, i.e. inverted elements) is solved again with the
+                # contact it predicts, if any (contact_prediction.py), and that full step is tried; where it is refused
+                # too, the line search goes on along the Newton step
+                predicted = (self._predict_contact(ind, H, rhs, du, rtol, EXACT_BELOW * tol)
+                             if may_predict and np.isfinite(e_try) else None)
+                may_predict = False
+                if predicted is not None:
+                    newton_step = (du, du_dot_rhs, step_max, alpha * cut)
+                    du, du_dot_rhs, step_max = predicted
+                elif newton_step is not None:
+                    du, du_dot_rhs, step_max, alpha = newton_step
+                    newton_step = None
+                else:
+                    alpha *= cut
+                slope = -du_dot_rhs
             else:  # converged (a full step below the tolerance) or, below 100 x tol, E differs by round-off only
                 energy_here = None
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
@@ -326,7 +353,7 @@ class NewtonSteps:
         if self._warm_start(ind, step):
             wp.copy(self.u_lag.dof_values, self.u.dof_values)
             self._update_lag(ind)
-        ok, iterations, why, pen = self._newton(ind, may_stall)
+        ok, iterations, why, pen = self._newton(ind, may_stall, lifts_off(step, self.settings.newton_tol_mm))
         self._last_ind = ind
         if ok:
             du = wp.clone(self.u.dof_values)

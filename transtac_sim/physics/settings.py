@@ -80,6 +80,7 @@ class SolverRecord:
     warm_starts: int = 0  # (sub)steps started from the extrapolated increment rather than the last state
     lag_updates: int = 0  # friction's lag moved inside Newton, all (sub)steps of the frame
     indefinite_hessians: int = 0  # Newton steps whose exact Hessian was not positive definite (clamped instead)
+    predicted_contacts: int = 0  # Newton steps solved again with the contact they predicted (contact_prediction.py)
     # |gradient| (N) at the solution once friction's lag (normal pressure and tangent plane) is moved there: what the lag
     # leaves unbalanced where its ``friction_lag_moves`` ran out before it converged (``residual`` is taken with the lag
     # where Newton left it; a converged lag leaves 1e-6 to 1e-4 N, assembly.py ``_friction_lag_residual``); 0 without

@@ -29,6 +29,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from transtac_sim.physics import contact, indenter_query
 from transtac_sim.physics.assembly import Assembly
+from transtac_sim.physics.contact_prediction import ContactPrediction
 from transtac_sim.physics.contact_sides import ContactSides
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
@@ -55,7 +56,7 @@ def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return P
 
 
-class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, PointDisplacement):
+class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, PointDisplacement):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
@@ -366,6 +367,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, PointDisplacement):
             warm_starts=self.stats["warm_starts"],
             lag_updates=self.stats["lag_updates"],
             indefinite_hessians=self.stats["indefinite_hessians"],
+            predicted_contacts=self.stats["predicted_contacts"],
         )
         self._poses = poses
         self.frame_index += 1

@@ -17,6 +17,12 @@ import warp.fem as fem
 UNLOAD_SCALES = (0.25, 0.5, 0.75)
 
 
+def lifts_off(step: np.ndarray, tol_mm: float) -> bool:
+    """Whether some indenter moves away from the gel (+z, the contact surface faces +z) by more than ``tol_mm`` in the
+    pose increment ``step`` (newton.py ``_pose_step``: 6 values per indenter, translation first)."""
+    return bool(np.any(step.reshape(-1, 6)[:, 2] > tol_mm))
+
+
 class WarmStart:
     """The warm start for ``QuasiStaticSolver`` (which provides the fields, energy, det F and penetration)."""
 
@@ -64,7 +70,7 @@ class WarmStart:
         shift = np.array([step[0], step[1], 0.0]) if len(self.indenters) == 1 else np.zeros(3)
         if np.linalg.norm(shift) > self.settings.newton_tol_mm:
             yield self._carried(shift)
-        if np.any(step.reshape(-1, 6)[:, 2] > self.settings.newton_tol_mm):  # some indenter lifts off the gel
+        if lifts_off(step, self.settings.newton_tol_mm):
             for scale in UNLOAD_SCALES:
                 guess = wp.zeros_like(self.u_prev.dof_values)
                 fem.linalg.array_axpy(x=self.u_prev.dof_values, y=guess, alpha=scale, beta=0.0)
