@@ -321,7 +321,8 @@ def coupled_newton_krylov(solver: QuasiStaticSolver, ind, may_stall: bool = Fals
 def newton_for(linear: str, merit_memory: int = 1, contraction: bool = False):
     """The coupled Newton whose systems ``linear`` solves (lu, gmres or bicgstab), as a ``NewtonSteps._newton``;
     ``contraction`` (lu only): each system's ``lag_contraction`` goes to ``lag_contractions``, a list per load step."""
-    def newton(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
+    def newton(solver: QuasiStaticSolver, ind, may_stall: bool = False,
+               lifting: bool = False) -> tuple[bool, int, str, float]:  # lifting: no contact prediction here
         if linear == "lu":
             return coupled_newton(solver, ind, may_stall, merit_memory, lag_contractions if contraction else None)
         return coupled_newton_krylov(solver, ind, may_stall, linear, merit_memory)
@@ -353,9 +354,9 @@ def lagged_then_coupled(newton):
     lag (the warm start's, newton.py ``_solve_step``) never moved, then ``newton`` (the coupled one) from its solution.
     The question it answers: is the coupled Newton quadratic from the solution of a nearby lag, so that the lag's
     correction costs a step or two? Iterations of both parts are summed; the split goes to ``phase_iterations``."""
-    def solve(solver: QuasiStaticSolver, ind, may_stall: bool = False) -> tuple[bool, int, str, float]:
-        with lag_held(solver):
-            ok, lagged, why, pen = NewtonSteps._newton(solver, ind, may_stall)
+    def solve(solver: QuasiStaticSolver, ind, may_stall: bool = False, *lifting) -> tuple[bool, int, str, float]:
+        with lag_held(solver):  # ``lifting`` (this tree's Newton, contact_prediction.py) passed on where given
+            ok, lagged, why, pen = NewtonSteps._newton(solver, ind, may_stall, *lifting)
         if not ok:
             phase_iterations.append((lagged, None, None))
             return ok, lagged, why, pen

@@ -134,10 +134,10 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray) -> None:
         step_index[id(self)] = k
         return solve_step(self, poses_, prev_poses, may_stall)
 
-    def from_oracle(self, ind, may_stall=False):
+    def from_oracle(self, ind, may_stall=False, *lifting):  # ``lifting``: this tree's Newton's, where given
         self.u_lag.dof_values.assign(solutions[step_index[id(self)]])
         self._update_lag(ind)
-        return newton_steps(self, ind, may_stall)
+        return newton_steps(self, ind, may_stall, *lifting)
 
     NewtonSteps._solve_step, NewtonSteps._newton = matched_step, from_oracle
     NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False

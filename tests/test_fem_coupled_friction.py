@@ -85,7 +85,7 @@ def _plate_slide(newton=None, linear_solver: str = "auto") -> tuple[np.ndarray, 
     place of the solver's: (the slid displacement (mm), the slide frame's friction_lag_residual_n (N))."""
     solver = _pressed_plate(SolverSettings(friction_lag_moves=1, linear_solver=linear_solver, coarse_cell_mm=1.5))
     if newton is not None:
-        solver._newton = lambda ind, may_stall=False: newton(solver, ind, may_stall)
+        solver._newton = lambda ind, may_stall=False, lifting=False: newton(solver, ind, may_stall)
     result = solver.solve_frame([_pose(0.2, 2.9)])
     assert result.record.converged
     return result.displacement_mm, result.record.friction_lag_residual_n
@@ -155,13 +155,13 @@ def test_moves_of_friction_s_lag_shrink_its_error_by_the_lag_contraction():
     by a factor per move that tends to rho(H^-1 J_c) at that solution from below (the dominant mode emerging). Printed
     on this CPU: rho 0.155; |error| ratios 0.118, 0.118, 0.122, 0.124, 0.127, 0.128, 0.129."""
     reference = _pressed_plate(SolverSettings(friction_lag_moves=1, coarse_cell_mm=1.5))
-    reference._newton = lambda ind, may_stall=False: coupled_newton(reference, ind, may_stall)
+    reference._newton = lambda ind, may_stall=False, lifting=False: coupled_newton(reference, ind, may_stall)
     reference.solve_frame([_pose(0.2, 2.9)])
     u_star = reference.u.dof_values.numpy().reshape(-1).copy()
     solver = _pressed_plate(SolverSettings(friction_lag_moves=1, coarse_cell_mm=1.5))
     errors, rho = [], []
 
-    def lag_fixed_point(ind, may_stall=False):
+    def lag_fixed_point(ind, may_stall=False, lifting=False):
         for _ in range(8):
             with lag_held(solver):
                 result = NewtonSteps._newton(solver, ind, may_stall)

@@ -184,10 +184,10 @@ def test_oracle_lag_starts_each_step_from_the_recorded_solution(monkeypatch):
     starts, ends = [], []  # per step: the largest distance of friction's lag from the recorded solution where
     newton_steps = NewtonSteps._newton  # Newton starts and where it ends
 
-    def spied(self, ind, may_stall=False):
+    def spied(self, ind, may_stall=False, lifting=False):
         k = len(starts)
         starts.append(np.abs(self.u_lag.dof_values.numpy() - solutions[k]).max())
-        result = newton_steps(self, ind, may_stall)
+        result = newton_steps(self, ind, may_stall, lifting)
         ends.append(np.abs(self.u_lag.dof_values.numpy() - solutions[k]).max())
         return result
 
