@@ -115,6 +115,7 @@ class ContactPrediction:
     _prediction: PredictionWork | None = None
 
     def _prediction_work(self) -> PredictionWork:
+        """The kept ``PredictionWork``, made on the first prediction of this solver (on the solver's device)."""
         if self._prediction is None:
             n = self._q_contact.total_point_count() * len(self.indenters)
             pred = PredictedContact()
