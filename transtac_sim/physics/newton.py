@@ -66,7 +66,7 @@ Issue 12, seventh pass (contact_prediction.py; BENCHMARKS.md ``fem_contact_predi
 springs back into the lifting indenter, and the full Newton steps, which see the contact only where it is at u, went
 into the indenter and were cut back by the line search (press_slide's release frame: 24-29 Newton iterations). On
 steps that lift an indenter, a refused full step is now solved again with the contact it predicts (a primal-dual active
-set step on the penalty term): the release frame takes 12-13, press_slide's median per frame falls from 15.5 to 12.5,
+set step on the penalty term): the release frame takes 12-13, press_slide's median per frame falls from 15.5 to 12.5-13,
 and its time per frame is unchanged within the runs' spread on an H100.
 """
 
