@@ -148,9 +148,8 @@ class ContactPrediction:
             return None
         work = self._prediction
         values = {"count": ind.count, "pred": work.pred}
-        work.rhs.zero_()
         fem.integrate(predicted_rhs_form, quadrature=self._q_contact, fields={"v": self._side_test}, values=values,
-                      output=work.rhs, add=True)
+                      output=work.rhs)
         fem.linalg.array_axpy(x=rhs, y=work.rhs, alpha=1.0)
         part = self._assemble("predicted", predicted_hessian_form, self._q_contact,
                               {"du": work.side_trial, "v": self._side_test}, values)
