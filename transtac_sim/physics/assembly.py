@@ -36,7 +36,7 @@ from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
 
 @wp.kernel(enable_backward=False)
-def add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), total: wp.array(dtype=wp.mat33d)):
+def _add_blocks(part: wp.array(dtype=wp.mat33d), slots: wp.array(dtype=int), total: wp.array(dtype=wp.mat33d)):
     """total[slots[k]] += part[k]: a part's blocks added at their places in the sum (each place once per part)."""
     k = wp.tid()
     total[slots[k]] = total[slots[k]] + part[k]
@@ -256,8 +256,12 @@ class Assembly:
             self._volumetric = VolumetricHessian.make(self._space, self.vertices_mm, self.tets, H, self.device)
         self._volumetric.add_to(H, self.u.dof_values, self._params, geometric, clamp, self._barrier_tets)
         for name, part in parts.items():
-            slots = self._sum_slots(name, part)
-            wp.launch(add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
+            self._add_part(H, name, part)
+
+    def _add_part(self, H: BsrMatrix, name: str, part: BsrMatrix) -> None:
+        """H's blocks += the part ``name``'s, each at its place in H (``_sum_slots``; one launch)."""
+        slots = self._sum_slots(name, part)
+        wp.launch(_add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
 
     def _contact_subset(self, ind):
         """The contact sides the Hessian is integrated over (contact_sides.py: those with a normal or friction

@@ -37,7 +37,6 @@ from dataclasses import dataclass
 import warp as wp
 import warp.fem as fem
 
-from transtac_sim.physics.assembly import add_blocks
 from transtac_sim.physics.indenter_query import Indenters, penetration
 from transtac_sim.physics.reductions import extremes, step_summary
 
@@ -64,12 +63,13 @@ def predicted_contact_form(s: fem.Sample, domain: fem.Domain, u: fem.Field, du: 
     """Stores, per indenter, k, g_s and n_t where the point is out of contact at u and deeper than ``depth`` (mm) at
     u + du; k = 0 elsewhere."""
     x = fem.position(domain, s) + u(s)
+    step = du(s)
     for i in range(ind.count):
         j = s.qp_index * ind.count + i
         g0, n0 = penetration(ind, i, x)
-        gt, nt = penetration(ind, i, x + du(s))
+        gt, nt = penetration(ind, i, x + step)
         k = _f(0.0)
-        gap = gt + wp.dot(nt, du(s))
+        gap = gt + wp.dot(nt, step)
         if g0 <= _f(0.0) and gt > depth and gap < _f(0.0):
             k = ind.stiffness
         pred.stiffness[j] = k
@@ -153,8 +153,7 @@ class ContactPrediction:
         fem.linalg.array_axpy(x=rhs, y=work.rhs, alpha=1.0)
         part = self._assemble("predicted", predicted_hessian_form, self._q_contact,
                               {"du": work.side_trial, "v": self._side_test}, values)
-        slots = self._sum_slots("predicted", part)
-        wp.launch(add_blocks, dim=len(slots), device=self.device, inputs=[part.values, slots, H.values])
+        self._add_part(H, "predicted", part)
         self.stats["predicted_contacts"] += 1
         step = self._linear.solve(H, work.rhs, definite=True, rtol=rtol, exact_below=exact_below, guess=du)
         if step is None:
