@@ -225,7 +225,8 @@ def _trace_solver() -> None:
         r = result.record
         print(f"frame {self.frame_index - 1}: {time.perf_counter() - t0:.1f} s, {r.iterations} Newton iterations, "
               f"{r.substeps} sub-step(s), residual {r.residual:.2e} N, Fz {result.forces_n[0][2]:.4f} N, "
-              f"{self._linear.shifted_solves} shifted device solves so far", flush=True)
+              f"{self._linear.shifted_solves} shifted device solves so far, "
+              f"{self._linear.float64_solves} solved with the float64 product", flush=True)
         ANATOMY.append(_new_frame_counts())
         return result
 

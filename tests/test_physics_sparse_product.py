@@ -11,6 +11,7 @@ import scipy.sparse.linalg as spla
 import trimesh
 import warp as wp
 import warp.fem as fem
+from warp.optim.linear import LinearOperator
 
 from transtac_sim.physics import (
     ElasticMaterial,
@@ -185,6 +186,41 @@ def test_device_last_resort_solves_the_shifted_system():
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-10) is None
     linear.cg_maxiter = 1
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=False, rtol=1e-10) is None
+
+
+def test_device_last_resort_tries_the_float64_product_before_a_shift(monkeypatch):
+    """Where the device CG's float32 product finds Newton's last Hessian (``definite=False``) not positive definite, the
+    system is solved again with the float64 product before any Levenberg-Marquardt shift: near inverted elements the
+    barrier's blocks dwarf the rest, and their float32 rounding made a positive definite Gauss-Newton Hessian look
+    indefinite (train_random sequence 72, BENCHMARKS.md ``fem_float64_fallback_gpu``). Here the float32 product is
+    replaced by one of -H (refused at its first direction): the step is the unshifted solution of H, counted in
+    ``float64_solves``; a Hessian that must be positive definite is still refused without that second solve."""
+    made = device_linear.block_row_operator
+
+    def negated_when_rounded(H, single_precision=False, rounded=None):
+        op = made(H, single_precision, rounded)
+        if not single_precision:
+            return op
+        negated = LinearOperator(op.shape, op.dtype, op.device,
+                                 lambda x, y, z, alpha, beta: op.matvec(x, y, z, -alpha, beta))
+        negated.graph_key = None
+        return negated
+
+    monkeypatch.setattr(device_linear, "block_row_operator", negated_when_rounded)
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
+    g[solver._fixed_nodes] = 0.0
+    rhs = wp.array(-g, dtype=wp.vec3d)
+    assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-10) is None
+    assert linear.float64_solves == 0 and linear.not_definite == 1
+    H = solver._hessian(ind, 0.0, True)
+    du = linear.solve(H, rhs, definite=False, rtol=1e-10)
+    assert du is not None and linear.float64_solves == 1 and linear.shifted_solves == 0 and linear.last_shift == 0.0
+    A = bsr_to_scipy(H).tocsr()[linear._free][:, linear._free]  # H was projected in place by the solve
+    expected = spla.spsolve(A.tocsc(), -g.reshape(-1)[linear._free])
+    np.testing.assert_allclose(du.numpy().reshape(-1)[linear._free], expected, rtol=0,
+                               atol=1e-7 * np.abs(expected).max())
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -13,9 +13,13 @@ below newton_tol_mm, and on
 press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
 forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
 a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
-a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where the last Hessian Newton tries
-(``definite=False``) is not solved either (CG stops at non-positive curvature or at ``cg_maxiter``), the system is
-shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a scaled gradient step, always a
+a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where the float32 product finds the
+last Hessian Newton tries (``definite=False``) not positive definite, the system is solved again with the float64
+product (``float64_solves`` counts them): near inverted elements the inversion barrier's blocks dwarf the rest, and
+their rounding made a positive definite Gauss-Newton Hessian look indefinite; on train_random's sequence 72 (a cylinder
+pressed 1.47 mm, an H100) the shifted steps that followed failed frames or ended one 33 N out of balance, and with the
+float64 retry every frame converged without a shift (BENCHMARKS.md ``fem_float64_fallback_gpu``). Where that is not
+solved either (CG stops at non-positive curvature or at ``cg_maxiter``), the system is shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a scaled gradient step, always a
 descent direction), and solved again on the device; ``shifted_solves`` counts them and ``last_shift`` tells Newton
 that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
 10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
@@ -219,10 +223,11 @@ class DeviceSolves:
         return result.converged, total
 
     def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
-                  coarse_from_this: bool = True) -> wp.array | None:
+                  coarse_from_this: bool = True, single_precision: bool = True) -> wp.array | None:
         """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
-        left as it was; H is projected in place). With ``coarse_from_this``, the first system of a load step that
-        converges makes the coarse inverse (coarse_space.py) for the systems after it."""
+        left as it was; H is projected in place, and projecting it again changes nothing). With
+        ``coarse_from_this``, the first system of a load step that converges makes the coarse inverse (coarse_space.py)
+        for the systems after it. ``single_precision``: the product reads H rounded to float32 (else H itself)."""
         key = (H.offsets.ptr, H.columns.ptr, H.row_counts.ptr if H.row_counts else 0, H.nrow)
         if self._fixed_blocks is None or self._fixed_blocks[0] != key:  # once per sparsity: the solver keeps its matrix
             self._fixed_blocks = (key, *fixed_blocks(H, self._fixed.numpy() > 0.5))
@@ -232,7 +237,8 @@ class DeviceSolves:
         work = self._device_work()
         if len(work.rounded) < len(H.values):  # the float32 blocks' buffer, grown to the matrix's capacity
             work.rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=self.device)
-        A = block_row_operator(H, single_precision=True, rounded=work.rounded)
+        A = block_row_operator(H, single_precision=True, rounded=work.rounded) if single_precision \
+            else block_row_operator(H)
         M = BlockJacobi(H, inverse=work.inverse)
         work.x.zero_()
         converged, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)

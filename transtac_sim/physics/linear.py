@@ -64,6 +64,7 @@ class LinearSolver(DeviceSolves):
         self.shifted_solves = 0  # device systems solved only with a Levenberg-Marquardt shift (``SHIFTS``)
         self.last_shift = 0.0  # the shift lambda of the last solve's result (0: a Newton step)
         self.not_definite = 0  # device solves stopped because the matrix is not positive definite
+        self.float64_solves = 0  # device systems solved with the float64 product after the float32 one refused them
         self.estimate_iterations = 0  # device CG iterations of the step estimates (``solve_last``)
         self.estimates_unconverged = 0  # device step estimates that did not converge (None returned)
         self._lu = None
@@ -95,15 +96,22 @@ class LinearSolver(DeviceSolves):
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
         ``guess`` (vec3d per node): where the direct path's PCG starts (Newton's step estimate for the same right-hand
-        side; the device CG starts from 0). Without ``definite``, a system the device CG does not solve is shifted
-        (``_solve_shifted``)."""
+        side; the device CG starts from 0). Without ``definite``, a system the device CG refuses as not positive definite
+        with the float32 product is solved with the float64 one, and one it does not solve is shifted
+        (``_solve_shifted``; device_linear.py)."""
         self.forget()
         self.last_shift = 0.0
         if self.method == "direct":
             return self._solve_direct(H, rhs, definite, rtol or self.cg_tol, exact_below, guess)
+        refused = self.not_definite
         x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)
         if x is not None or definite:
             return x
+        if self.not_definite > refused:  # the float32 product found it not positive definite: try the float64 one
+            x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below, single_precision=False)
+            if x is not None:
+                self.float64_solves += 1
+                return x
         return self._solve_shifted(H, rhs, rtol or self.cg_tol)
 
     def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False, rtol: float = 0.0,
