@@ -117,15 +117,18 @@ LOCKSTEP_BATCHES = (2, 4, 8)
 
 def solver_summary(root: Path, worst: int = 0) -> str:
     """The physics of a dataset folder (finished or cut short), from its frames' ``labels.json`` solver records and
-    the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence; friction's
-    lag residual over the contact force, and the ``worst`` frames by it."""
+    the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence; the
+    residuals (the largest one's frame); friction's lag residual over the contact force, and the ``worst`` frames by it."""
     import statistics
 
     frames: dict[str, list[dict]] = {}
     lagged = []  # (lag residual / largest |force|, sequence, frame, |force|, record) of frames with both
+    residuals = []  # (the solver record's residual, N; sequence, frame)
     for path in sorted(root.glob("sequences/*/*/labels.json")):
         labels = json.loads(path.read_text())
         frames.setdefault(labels["sequence"], []).append(labels["solver"])
+        if "residual" in labels["solver"]:
+            residuals.append((labels["solver"]["residual"], labels["sequence"], labels.get("frame")))
         force = max((sum(f * f for f in i["force_n"]) ** 0.5 for i in labels.get("indenters", [])), default=0.0)
         if "friction_lag_residual_n" in labels["solver"] and force > 0.0:
             lagged.append((labels["solver"]["friction_lag_residual_n"] / force, labels["sequence"], labels.get("frame"),
@@ -146,6 +149,10 @@ def solver_summary(root: Path, worst: int = 0) -> str:
                      f"{statistics.median(its):g}, max {max(its)}; frames with sub-steps: "
                      f"{sum(r.get('substeps', 1) > 1 for r in records)}; not converged: "
                      f"{sum(not r['converged'] for r in records)}")
+        if residuals:  # a frame reported as converged with a large one was seen (``fem_float64_fallback_gpu``)
+            top, seq, frame = max(residuals, key=lambda x: x[0])
+            lines.append(f"residual (labels.json solver residual, N): median {statistics.median(x[0] for x in residuals):.1e}"
+                         f", max {top:.2e} ({seq} frame {frame})")
         if lag_share:
             high = statistics.quantiles(lag_share, n=10, method="inclusive")[-1] if len(lag_share) > 1 else lag_share[0]
             lines.append(f"friction's lag left unbalanced (labels.json solver friction_lag_residual_n over the largest "

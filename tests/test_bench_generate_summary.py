@@ -46,3 +46,14 @@ def test_summary_gives_friction_s_lag_residual_against_the_contact_force(tmp_pat
     assert "in 2 frames with contact: median 5.1e-02, 90th percentile 9.0e-02, max 1.0e-01" in text, text
     assert "- seq_00000 frame 1: friction's lag leaves 0.2 N against |force| 2 N (0.10); 3 Newton iterations" in text
     assert "seq_00000 frame 0: friction" not in text  # only the worst one
+
+
+def test_summary_gives_the_residuals_and_where_the_largest_is(tmp_path):
+    for seq, residuals in (("seq_00000", [1e-6, 33.0]), ("seq_00001", [2e-6, 3e-6])):
+        for frame, r in enumerate(residuals):
+            path = tmp_path / "sequences" / seq / f"{frame:06d}" / "labels.json"
+            path.parent.mkdir(parents=True)
+            path.write_text(json.dumps({"sequence": seq, "frame": frame, "solver": {
+                "iterations": 3, "seconds": 0.5, "converged": True, "residual": r}}))
+    text = solver_summary(tmp_path)
+    assert "residual (labels.json solver residual, N): median 2.5e-06, max 3.30e+01 (seq_00000 frame 1)" in text, text
