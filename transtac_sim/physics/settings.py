@@ -60,6 +60,10 @@ class SolverSettings:
     # folding elements at the discrete minimum (scripts/fem_stability.py)
     barrier_det_f: float = 0.1
     barrier_stiffness: float = 10.0
+    # a (sub)step that Newton ends with |gradient| (N, free dofs) above this is not taken as converged but halved
+    # (solver.py): converged frames end at 1e-7 to 1e-3 N, and one train_random frame had been written with 1.58e3 N
+    # (BENCHMARKS.md ``fem_float64_fallback_gpu``)
+    max_residual_n: float = 1.0
 
 
 @dataclass

@@ -321,6 +321,9 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
             total_iterations += it
             if ok and pen > self.settings.penetration_tol_mm:
                 ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
+            if ok and not (residual := self._free_norm(self._gradient(self._last_ind))) <= self.settings.max_residual_n:
+                ok, why = False, (f"Newton ended out of equilibrium: |gradient| {residual:.3g} N above max_residual_n = "
+                                  f"{self.settings.max_residual_n:g} N")
             if ok:
                 self._keep_stick(self._last_ind)
                 done, prev, steps = done + size, target, steps + 1
