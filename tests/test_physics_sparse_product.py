@@ -191,7 +191,7 @@ def test_device_last_resort_solves_the_shifted_system():
 def test_device_last_resort_tries_the_float64_product_before_a_shift(monkeypatch):
     """Where the device CG's float32 product finds Newton's last Hessian (``definite=False``) not positive definite, the
     system is solved again with the float64 product before any Levenberg-Marquardt shift: near inverted elements the
-    barrier's blocks dwarf the rest, and their float32 rounding made a positive definite Gauss-Newton Hessian look
+    barrier's blocks dwarf the rest, and their float32 rounding can make a positive definite Gauss-Newton Hessian look
     indefinite (train_random sequence 72, BENCHMARKS.md ``fem_float64_fallback_gpu``). Here the float32 product is
     replaced by one of -H (refused at its first direction): the step is the unshifted solution of H, counted in
     ``float64_solves``; a Hessian that must be positive definite is still refused without that second solve."""

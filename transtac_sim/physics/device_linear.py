@@ -15,12 +15,13 @@ forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x 
 a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so
 a converged step may be up to about twice newton_tol_mm (2e-5 mm by default). Where the float32 product finds the
 last Hessian Newton tries (``definite=False``) not positive definite, the system is solved again with the float64
-product (``float64_solves`` counts them): near inverted elements the inversion barrier's blocks dwarf the rest, and
-their rounding made a positive definite Gauss-Newton Hessian look indefinite; on train_random's sequence 72 (a cylinder
-pressed 1.47 mm, an H100) the shifted steps that followed failed frames or ended one 33 N out of balance, and with the
-float64 retry every frame converged without a shift (BENCHMARKS.md ``fem_float64_fallback_gpu``). Where that is not
-solved either (CG stops at non-positive curvature or at ``cg_maxiter``), the system is shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a scaled gradient step, always a
-descent direction), and solved again on the device; ``shifted_solves`` counts them and ``last_shift`` tells Newton
+product (``float64_solves`` counts them). The Gauss-Newton Hessian is positive definite in exact arithmetic, but near
+inverted elements the inversion barrier's blocks dwarf the rest, and their rounding can make it look indefinite (the
+likely cause): on train_random's sequence 72 (a cylinder pressed 1.47 mm, an H100) the shifted steps that followed
+failed frames or ended one with a residual of 33 N, and with the float64 retry every frame converged without a shift
+(BENCHMARKS.md ``fem_float64_fallback_gpu``). Where that is not solved either (CG stops at non-positive curvature or
+at ``cg_maxiter``), the system is shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a
+scaled gradient step, always a descent direction), and solved again on the device; ``shifted_solves`` counts them and ``last_shift`` tells Newton
 that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
 10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
 within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
