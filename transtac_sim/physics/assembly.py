@@ -91,8 +91,8 @@ class Assembly:
         """|g| (N, on the free dofs) at self.u with friction's lagged pressure and tangent plane taken at u: the force
         imbalance that the lag leaves at a converged state. Small where the lag converged (Newton moves it only while it
         is 10 newton_tol_mm or more from u: 1e-6 to 1e-4 N in BENCHMARKS.md ``fem_friction_lag_residual``); larger where
-        ``friction_lag_moves`` ran out first. 0 without friction. The lagged state is put back, but the gradient and the
-        contact state (traction, stiffnesses) are left at this evaluation: call ``_gradient`` after it."""
+        ``friction_lag_moves`` ran out first. 0 without friction. The lagged state is put back, and so are the gradient
+        and the contact state (traction, stiffnesses) at u with it."""
         if not ind.count or not any(i.friction > 0 for i in self.indenters):
             return 0.0
         st = self._contact_state
@@ -101,6 +101,7 @@ class Assembly:
         residual = self._free_norm(self._gradient(ind))
         wp.copy(st.lag_g, kept[0])
         wp.copy(st.lag_n, kept[1])
+        self._gradient(ind)
         return residual
 
     def _keep_stick(self, ind) -> None:

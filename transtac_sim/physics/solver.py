@@ -321,6 +321,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
             total_iterations += it
             if ok and pen > self.settings.penetration_tol_mm:
                 ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
+            # the frame's record keeps the last accepted sub-step's |gradient|
             if ok and not (residual := self._free_norm(self._gradient(self._last_ind))) <= self.settings.max_residual_n:
                 ok, why = False, (f"Newton ended out of equilibrium: |gradient| {residual:.3g} N above max_residual_n = "
                                   f"{self.settings.max_residual_n:g} N")
@@ -346,8 +347,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
                 f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
-        lag_residual = self._friction_lag_residual(ind)  # first: the gradient below then leaves a consistent state
-        residual = self._free_norm(self._gradient(ind))
+        lag_residual = self._friction_lag_residual(ind)
         wrench = np.zeros((len(self.indenters), 6))
         for i in range(len(self.indenters)):
             for c in range(6):
