@@ -142,24 +142,24 @@ class NewtonSteps:
         stiffness raise: they change E). With ``lifting`` (the step lifts an indenter off the gel), a full step refused
         by its energy is solved again with the contact it predicts (contact_prediction.py) and that full step is tried.
 
-        Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag
-        move (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged
-        when the Newton step is below ``newton_tol_mm`` and friction's lag is within 10 newton_tol_mm of u (or
-        was moved ``friction_lag_moves`` times): after a full step (alpha = 1) that step is estimated from
-        the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no factorisation, refined to
-        the tight tolerance only where its length is near the threshold it is compared with, ``_estimate_band``; not
-        after a lag move made on an estimate, where the step is seldom converged), otherwise it is the full Newton
-        step itself; the estimate also starts the next system's solve on the host. The linear solver solves each
-        system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within
+        Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag move
+        (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged when the
+        Newton step is below ``newton_tol_mm``, |g| is at most ``max_residual_n`` (``_short_step_tests``) and friction's
+        lag is within 10 newton_tol_mm of u (or was moved ``friction_lag_moves`` times): after a full step (alpha = 1)
+        that step is estimated from the new gradient with the last Hessian (``LinearSolver.solve_last``: no assembly, no
+        factorisation, refined to the tight tolerance only where its length is near the threshold it is compared with,
+        ``_estimate_band``; not after a lag move made on an estimate, where the step is seldom converged), otherwise it
+        is the full Newton step itself; the estimate also starts the next system's solve on the host. The linear solver
+        solves each system to the forcing tolerance (``FORCING_MAX``), and to its tight one where the step is within
         ``EXACT_BELOW`` newton_tol_mm. At convergence a penetration above ``penetration_tol_mm`` raises the contact
         stiffness (``_raise_stiffness``) and Newton goes on from there. The Armijo back-tracking line search on E
-        (quadratic interpolation) never accepts a step that makes any det F <= 0. Iterations count Newton steps
-        (each assembles the exact Hessian and, where that is not positive definite, the clamped or Gauss-Newton
-        one)."""
+        (quadratic interpolation) never accepts a step that makes any det F <= 0. Iterations count Newton steps (each
+        assembles the exact Hessian and, where that is not positive definite, the clamped or Gauss-Newton one)."""
         s = self.settings
         tol = s.newton_tol_mm
         friction = any(i.friction > 0 for i in self.indenters)
         iterations, raises, lags, full_step, inverted, short_steps = 0, 0, 0, False, False, 0
+        step_max = np.inf  # max |du| (mm) of the last Newton step
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
         while True:
@@ -174,7 +174,8 @@ class NewtonSteps:
             if lag_open and self._move_lag(ind, remaining, change):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                 continue
-            if remaining < tol:  # converged; the estimated step is taken too (below tol E changes by round-off)
+            if remaining < tol and self._short_step_tests(g_norm):  # converged; the estimated step is taken too
+                # (below tol E changes by round-off)
                 energy_here = None
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
                 fem.linalg.array_axpy(x=estimate, y=self._u_try.dof_values, alpha=1.0)
@@ -187,6 +188,9 @@ class NewtonSteps:
                 continue
             if iterations == self._newton_iteration_cap():
                 why = " (line-search steps cut short by inverted elements, det F <= 0)" if inverted else ""
+                if min(remaining, step_max) < tol:
+                    why += (f" (its steps below newton_tol_mm at |gradient| {g_norm:.3g} N above max_residual_n = "
+                            f"{s.max_residual_n:g} N, smallest det F {self._min_det(self.u):.3g})")
                 return False, iterations, "Newton iteration limit reached" + why, 0.0
             iterations += 1
             energy = energy_here if energy_here is not None else self._energy(self.u, ind)
@@ -206,7 +210,8 @@ class NewtonSteps:
                     break  # at a round-off gradient (e.g. GPU atomics where nothing touches) the slope means nothing
             else:
                 return False, iterations, "Newton direction is not a descent direction", 0.0
-            alpha = 1.0 if step_max >= tol or self._linear.last_shift else 0.0  # a shifted step tests nothing
+            # a shifted step tests nothing, nor does a short one at a large |g| (``_short_step_tests``)
+            alpha = 1.0 if step_max >= tol or self._linear.last_shift or not self._short_step_tests(g_norm) else 0.0
             may_predict = lifting and ind.count > 0 and alpha == 1.0 and not self._linear.last_shift
             newton_step = None  # (du, du . rhs, max |du|, its next alpha) while a predicted step is tried in its place
             while alpha > 1e-6:
@@ -243,7 +248,8 @@ class NewtonSteps:
                 energy_here = None
                 wp.copy(self._u_try.dof_values, self.u.dof_values)
                 fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=1.0)
-                if step_max >= 100.0 * tol or not self._min_det(self._u_try) > 0.0:
+                if (step_max >= 100.0 * tol or not self._short_step_tests(g_norm)
+                        or not self._min_det(self._u_try) > 0.0):
                     why = "line search failed" + (" (every step tried made an inverted element, det F <= 0)"
                                                   if inverted else "")
                     return False, iterations, why, 0.0
@@ -262,6 +268,17 @@ class NewtonSteps:
             if may_stall and short_steps == STALL_STEPS:
                 return False, iterations, (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} "
                                            "or less by the line search"), 0.0
+
+    def _short_step_tests(self, g_norm: float) -> bool:
+        """Whether a Newton step below newton_tol_mm at a gradient of ``g_norm`` (N, free dofs) shows convergence: where
+        |g| is at most ``max_residual_n``. Near a check point flattened towards J = 0 the inversion barrier
+        (elasticity.py) costs little energy, but its force grows as j_hat^2 / J and its curvature as j_hat^2 / J^2, so
+        Newton's step there is about J long whatever the force: on train_random (120 sequences, 8 MPS workers, an H100)
+        7 whole-frame steps passed the step-length test at |g| of 4 to 1.4e4 N (steps down to 3.5e-9 mm), and where
+        such a step came at |g| above 100 N, min det F was at most 7.7e-6 (BENCHMARKS.md ``fem_short_step_gpu``).
+        Newton goes on there instead (full steps; J about doubles per step), and a line search that fails there fails
+        the step."""
+        return g_norm <= self.settings.max_residual_n
 
     def _newton_iteration_cap(self) -> int:
         """``max_newton_iterations``, or its default for the linear solver in use (settings.py)."""

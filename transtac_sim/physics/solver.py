@@ -324,7 +324,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
             # the frame's record keeps the last accepted sub-step's |gradient|
             if ok and not (residual := self._free_norm(self._gradient(self._last_ind))) <= self.settings.max_residual_n:
                 ok, why = False, (f"Newton ended out of equilibrium: |gradient| {residual:.3g} N above max_residual_n = "
-                                  f"{self.settings.max_residual_n:g} N")
+                                  f"{self.settings.max_residual_n:g} N, smallest det F {self._min_det(self.u):.3g}")
             if ok:
                 self._keep_stick(self._last_ind)
                 done, prev, steps = done + size, target, steps + 1
