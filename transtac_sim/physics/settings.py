@@ -64,7 +64,7 @@ class SolverSettings:
     # (solver.py): converged frames end at 1e-7 to 1e-3 N, and one train_random frame had been written with 1.58e3 N
     # (BENCHMARKS.md ``fem_float64_fallback_gpu``). Newton's step below newton_tol_mm shows convergence only at |gradient|
     # up to this: near elements flattened towards det F = 0 the barrier makes that step tiny at any force
-    # (newton.py ``_short_step_tests``, BENCHMARKS.md ``fem_short_step_gpu``)
+    # (newton.py ``_short_step_converges``, BENCHMARKS.md ``fem_short_step_gpu``)
     max_residual_n: float = 1.0
 
 
