@@ -153,6 +153,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                                                       "of its conditional CUDA graph loop"),
          coarse_cell_mm: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
+         newton_force_rtol: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
+                                                        "newton_force_rtol (Newton's force test; 0: off)"),
          coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
                                                   help="device_linear.COARSE_REFRESH_STEPS"),
          estimate_band: str | None = solver_variants.ESTIMATE_BAND_OPTION,
@@ -193,7 +195,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     setup = load_setup(scene)
     physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": linear_solver} | (
         {"friction_lag_moves": friction_lag_moves} if friction_lag_moves else {}) | (
-        {"coarse_cell_mm": coarse_cell_mm} if coarse_cell_mm is not None else {}))
+        {"coarse_cell_mm": coarse_cell_mm} if coarse_cell_mm is not None else {}) | (
+        {"newton_force_rtol": newton_force_rtol or None} if newton_force_rtol is not None else {}))
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = PhaseClock()
     missing = [name for cls, names in PHASES.items() for name in names if not hasattr(cls, name)]

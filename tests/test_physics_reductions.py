@@ -5,7 +5,13 @@ import numpy as np
 import pytest
 import warp as wp
 
-from transtac_sim.physics.reductions import extremes, max_abs, negated_free, step_summary
+from transtac_sim.physics.reductions import (
+    extremes,
+    max_abs,
+    negated_free,
+    negated_free_and_load,
+    step_summary,
+)
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 N = 3001  # not a multiple of the block's 256 threads
@@ -47,6 +53,8 @@ def test_negated_free_zeroes_the_fixed_components(device):
     expected = -g * (1.0 - fixed)
     assert np.array_equal(rhs.numpy(), expected)
     assert norm == pytest.approx(np.linalg.norm(expected), rel=1e-14)
+    _, same, load = negated_free_and_load(_vec(g, device), _vec(fixed, device))
+    assert same == norm and load == pytest.approx(abs(g[fixed[:, 2] > 0.5, 2].sum()), rel=1e-12)  # the support's load
     _, zero = negated_free(_vec(g, device), _vec(np.ones((N, 3)), device))
     assert zero == 0.0  # every component fixed: Newton's "already at equilibrium"
     g[np.flatnonzero(fixed[:, 0])[0], 0] = np.inf  # whatever a fixed component holds, it is dropped

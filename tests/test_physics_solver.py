@@ -426,6 +426,22 @@ def test_short_newton_step_at_a_large_gradient_is_not_convergence(linear_solver)
     np.testing.assert_allclose(held.forces_n[0, 2], tight.forces_n[0, 2], rtol=1e-6)
 
 
+@pytest.mark.parametrize("linear_solver", ["direct", "cg"])
+def test_force_test_ends_newton_once_the_force_left_is_small(linear_solver):
+    """With ``newton_force_rtol`` Newton also converges where |gradient| is at most that fraction of the normal load on
+    the gel's support (newton.py ``_force_balanced``). With a step tolerance out of reach in practice (1e-12 mm,
+    reached by quadratic convergence in 8-9 iterations here), rtol 1e-3 ends this press earlier, with |gradient|
+    at most 1e-3 of the normal force and that force within 1e-3 of the tight solution's."""
+    def press(**fields):
+        return _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-12, max_newton_iterations=30,
+                                            **fields))[1]
+
+    tight, early = press(), press(newton_force_rtol=1e-3)
+    assert early.record.converged and early.record.iterations < tight.record.iterations
+    assert tight.record.residual < early.record.residual <= 1e-3 * abs(early.forces_n[0, 2])
+    np.testing.assert_allclose(early.forces_n[0, 2], tight.forces_n[0, 2], rtol=1e-3)
+
+
 def test_step_ended_out_of_equilibrium_is_halved_not_kept(monkeypatch):
     """A (sub)step that Newton reports as converged with |gradient| above ``max_residual_n`` is not kept (solver.py): it
     is solved again in halves. Here the first step's result is pushed 0.05 mm off its equilibrium at one free node

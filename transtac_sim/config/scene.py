@@ -72,6 +72,10 @@ class Physics(_Strict):
 
     degree: Literal[1, 2] = Field(default=2, description="1: linear tets (fast, stiffer); 2: quadratic (accurate)")
     newton_tol_mm: float = Field(default=1e-4, gt=0.0, le=1.0)
+    newton_force_rtol: float | None = Field(
+        default=None, gt=0.0, le=0.1, description="Newton also converges where the force left unbalanced (N, the norm "
+        "over the free nodes) is at most this fraction of the normal load on the gel's support, once friction's lag is "
+        "settled, whatever its step's length (SolverSettings.newton_force_rtol); unset: the step-length test alone")
     device: Literal["auto", "cpu", "cuda"] = "auto"
     friction_slip_mm: float = Field(
         default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point moves up to this far against "

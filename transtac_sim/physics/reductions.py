@@ -90,16 +90,22 @@ def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64), bl
 @wp.kernel(enable_backward=False)
 def _negated_free(g: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d),
                   out: wp.array(dtype=wp.float64), blocks: int):
-    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); |rhs|^2 per block."""
+    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); per block |rhs|^2 and the sum of g's
+    fixed z components (the normal load the gel passes to its support)."""
     block, lane = wp.tid()
     squares = wp.float64(0.0)
+    load = wp.float64(0.0)
     for i in range(block * wp.block_dim() + lane, g.shape[0], blocks * wp.block_dim()):
         v = -free_part(g[i], fixed[i])
         rhs[i] = v
         squares += wp.dot(v, v)
-    total = wp.tile_sum(wp.tile(squares))
+        if fixed[i][2] > wp.float64(0.5):
+            load += g[i][2]
+    totals = wp.tile_sum(wp.tile(squares))
+    loads = wp.tile_sum(wp.tile(load))
     if lane == 0:
-        out[1 + block] = total[0]
+        out[2 + 2 * block] = totals[0]
+        out[3 + 2 * block] = loads[0]
 
 
 @wp.kernel(enable_backward=False)
@@ -228,9 +234,15 @@ def read_extremes(out: wp.array) -> tuple[float, float]:
 
 def negated_free(g: wp.array, fixed: wp.array) -> tuple[wp.array, float]:
     """(-g with its fixed components set to 0, the norm of that): Newton's right-hand side and |g| on the free dofs."""
+    return negated_free_and_load(g, fixed)[:2]
+
+
+def negated_free_and_load(g: wp.array, fixed: wp.array) -> tuple[wp.array, float, float]:
+    """``negated_free`` and |sum of g's fixed z components| (N): the normal load the gel passes to its support, which at
+    equilibrium balances the indenters' normal force (one read for all three)."""
     rhs = wp.empty_like(g)
-    (squares,) = _reduce(_negated_free, [g, fixed, rhs], (SUM,), g.device)
-    return rhs, squares ** 0.5
+    squares, load = _reduce(_negated_free, [g, fixed, rhs], (SUM, SUM), g.device)
+    return rhs, squares ** 0.5, abs(load)
 
 
 def step_summary(du: wp.array, rhs: wp.array) -> tuple[float, float, bool]:

@@ -66,6 +66,10 @@ class SolverSettings:
     # up to this: near elements flattened towards det F = 0 the barrier makes that step tiny at any force
     # (newton.py ``_short_step_converges``, BENCHMARKS.md ``fem_short_step_gpu``)
     max_residual_n: float = 1.0
+    # also converged where |gradient| (N, free dofs) is at most this fraction of the normal load the gel passes to its
+    # support (at equilibrium the indenters' normal force) and friction's lag is settled, whatever the step's length
+    # (newton.py ``_force_balanced``); None: the step-length test alone
+    newton_force_rtol: float | None = None
 
 
 @dataclass
