@@ -28,6 +28,8 @@ iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unr
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
+``--newton-force-rtol R`` sets the scene's ``[physics] newton_force_rtol`` (Newton's force test; 0: off; BENCHMARKS.md
+``fem_force_test_gpu``).
 ``--warm-start``, ``--exact-below``, ``--lag-move-ratio``, ``--press-lag-move-ratio``, ``--friction-lag-moves`` and
 ``--estimate-band`` are the Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``,
 ``fem_estimate_refinement_gpu``, ``fem_press_lag_moves_gpu``).
@@ -153,7 +155,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                                                       "of its conditional CUDA graph loop"),
          coarse_cell_mm: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
-         newton_force_rtol: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
+         newton_force_rtol: float | None = typer.Option(None, min=0.0, max=0.1, help="replace the scene's [physics] "
                                                         "newton_force_rtol (Newton's force test; 0: off)"),
          coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
                                                   help="device_linear.COARSE_REFRESH_STEPS"),
