@@ -118,7 +118,8 @@ LOCKSTEP_BATCHES = (2, 4, 8)
 def solver_summary(root: Path, worst: int = 0) -> str:
     """The physics of a dataset folder (finished or cut short), from its frames' ``labels.json`` solver records and
     the failures kept in ``.resume/``: frames, failures, seconds and Newton iterations per frame, per sequence; the
-    residuals (the largest one's frame); friction's lag residual over the contact force, and the ``worst`` frames by it."""
+    residuals (the largest one's frame); friction's lag residual over the contact force, and the ``worst`` frames by
+    it."""
     import statistics
 
     frames: dict[str, list[dict]] = {}
@@ -151,8 +152,9 @@ def solver_summary(root: Path, worst: int = 0) -> str:
                      f"{sum(not r['converged'] for r in records)}")
         if residuals:  # a frame reported as converged with a large one was seen (``fem_float64_fallback_gpu``)
             top, seq, frame = max(residuals, key=lambda x: x[0])
-            lines.append(f"residual (labels.json solver residual, N): median {statistics.median(x[0] for x in residuals):.1e}"
-                         f", max {top:.2e} ({seq} frame {frame})")
+            median = statistics.median(x[0] for x in residuals)
+            lines.append(f"residual (labels.json solver residual, N): median {median:.1e}, max {top:.2e} ({seq} frame "
+                         f"{frame})")
         if lag_share:
             high = statistics.quantiles(lag_share, n=10, method="inclusive")[-1] if len(lag_share) > 1 else lag_share[0]
             lines.append(f"friction's lag left unbalanced (labels.json solver friction_lag_residual_n over the largest "

@@ -416,8 +416,9 @@ def test_short_newton_step_at_a_large_gradient_is_not_convergence(linear_solver)
     """A Newton step below ``newton_tol_mm`` shows convergence only where |gradient| is at most ``max_residual_n``
     (newton.py ``_short_step_converges``; on train_random such steps were as short as 3.5e-9 mm at 1.27e4 N, next to
     flattened elements, BENCHMARKS.md ``fem_short_step_gpu``). Here no barrier acts: a loose step tolerance (0.01 mm,
-    which alone stops this press after 2 iterations at 0.027 N) stands in for it, with a limit of 1e-4 N: Newton goes on in the same step to the frame of the default tolerance (normal force within
-    1e-6 relative, residual below 1e-7 N) instead of ending out of equilibrium, being halved and failing."""
+    which alone stops this press after 2 iterations at 0.027 N) stands in for it, with a limit of 1e-4 N: Newton goes
+    on in the same step to the frame of the default tolerance (normal force within 1e-6 relative, residual below
+    1e-7 N) instead of ending out of equilibrium, being halved and failing."""
     tight = _press_sphere(SolverSettings(linear_solver=linear_solver))[1]
     loose = _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-2))[1]
     assert loose.record.residual > 1e-2  # the step-length test alone stops early
@@ -459,8 +460,8 @@ def test_step_ended_out_of_equilibrium_is_halved_not_kept(monkeypatch):
     is solved again in halves. Here the first step's result is pushed 0.05 mm off its equilibrium at one free node
     after Newton returns (standing in for the frame of BENCHMARKS.md ``fem_float64_fallback_gpu``, written with
     1.58e3 N; on this small soft block the push leaves about 0.012 N, so the limit is 1e-3 N here): the frame takes 2
-    sub-steps and ends in equilibrium, with the normal force of the press solved in one step. Where every step is pushed,
-    the frame fails with the reason (the residual and the smallest det F) and keeps nothing; so it does where
+    sub-steps and ends in equilibrium, with the normal force of the press solved in one step. Where every step is
+    pushed, the frame fails with the reason (the residual and the smallest det F) and keeps nothing; so it does where
     ``max_residual_n`` is below what Newton reaches, after Newton has gone on past steps below newton_tol_mm
     (``_short_step_converges``) to its iteration cap."""
     settings = SolverSettings(max_residual_n=1e-3)

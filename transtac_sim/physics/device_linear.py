@@ -21,8 +21,8 @@ likely cause): on train_random's sequence 72 (a cylinder pressed 1.47 mm, an H10
 failed frames or ended one with a residual of 33 N, and with the float64 retry every frame converged without a shift
 (BENCHMARKS.md ``fem_float64_fallback_gpu``). Where that is not solved either (CG stops at non-positive curvature or
 at ``cg_maxiter``), the system is shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a
-scaled gradient step, always a descent direction), and solved again on the device; ``shifted_solves`` counts them and ``last_shift`` tells Newton
-that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
+scaled gradient step, always a descent direction), and solved again on the device; ``shifted_solves`` counts them
+and ``last_shift`` tells Newton that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
 10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
 within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
 ``fem_device_last_resort_gpu``). The last converged system's float32 matrix and

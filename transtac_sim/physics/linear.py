@@ -96,8 +96,8 @@ class LinearSolver(DeviceSolves):
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
         on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
         ``guess`` (vec3d per node): where the direct path's PCG starts (Newton's step estimate for the same right-hand
-        side; the device CG starts from 0). Without ``definite``, a system the device CG refuses as not positive definite
-        with the float32 product is solved with the float64 one, and one it does not solve is shifted
+        side; the device CG starts from 0). Without ``definite``, a system the device CG refuses as not positive
+        definite with the float32 product is solved with the float64 one, and one it does not solve is shifted
         (``_solve_shifted``; device_linear.py)."""
         self.forget()
         self.last_shift = 0.0

@@ -304,7 +304,7 @@ class NewtonSteps:
         1.6e-4 to 3.7e-3 N); with rtol 1e-3 press_slide takes 0.85-0.89x the Newton iterations, its markers within the
         run-to-run spread but for two frames (BENCHMARKS.md ``fem_force_test_gpu``)."""
         rtol = self.settings.newton_force_rtol
-        return rtol is not None and g_norm <= min(rtol * load, self.settings.max_residual_n)
+        return rtol is not None and g_norm <= rtol * load and self._short_step_converges(g_norm)
 
     def _newton_iteration_cap(self) -> int:
         """``max_newton_iterations``, or its default for the linear solver in use (settings.py)."""

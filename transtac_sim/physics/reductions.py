@@ -90,8 +90,8 @@ def _extremes(a: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64), bl
 @wp.kernel(enable_backward=False)
 def _negated_free(g: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), rhs: wp.array(dtype=wp.vec3d),
                   out: wp.array(dtype=wp.float64), blocks: int):
-    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); per block |rhs|^2 and the sum of g's
-    fixed z components (the normal load the gel passes to its support)."""
+    """rhs = -g on the free components (0 on the fixed ones, whatever g holds there); per block |rhs|^2 and the sum of
+    g's fixed z components (the normal load the gel passes to its support)."""
     block, lane = wp.tid()
     squares = wp.float64(0.0)
     load = wp.float64(0.0)

@@ -322,9 +322,10 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
             if ok and pen > self.settings.penetration_tol_mm:
                 ok, why = False, f"penetration {pen:.3g} mm above the tolerance"
             # the frame's record keeps the last accepted sub-step's |gradient|
-            if ok and not (residual := self._free_norm(self._gradient(self._last_ind))) <= self.settings.max_residual_n:
+            limit = self.settings.max_residual_n
+            if ok and not (residual := self._free_norm(self._gradient(self._last_ind))) <= limit:
                 ok, why = False, (f"Newton ended out of equilibrium: |gradient| {residual:.3g} N above max_residual_n = "
-                                  f"{self.settings.max_residual_n:g} N, smallest det F {self._min_det(self.u):.3g}")
+                                  f"{limit:g} N, smallest det F {self._min_det(self.u):.3g}")
             if ok:
                 self._keep_stick(self._last_ind)
                 done, prev, steps = done + size, target, steps + 1
