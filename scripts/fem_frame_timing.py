@@ -10,6 +10,8 @@ Newton iterations (Hessian assemblies), line-search halvings, contact stiffness 
 sub-steps, seconds, the residual and what friction's lag leaves unbalanced (``SolverRecord.friction_lag_residual_n``).
 
 ``--friction MU`` replaces every indenter's friction coefficient (0: frictionless), e.g. to see what friction costs.
+``--newton-force-rtol R`` replaces the scene's ``[physics] newton_force_rtol`` (Newton's force test, 3e-3 unless a scene
+sets it; 0: the step-length test alone).
 ``--no-friction-memory`` measures each step's slip afresh (``SolverSettings.friction_memory``, the friction model before
 contact.py carried its sticking stretch from step to step).
 
@@ -75,12 +77,14 @@ def with_friction(setup, friction: float):
 
 
 def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, sequence: int | None = None,
-        friction_lag_moves: int | None = None, friction: float | None = None) -> dict:
+        friction_lag_moves: int | None = None, friction: float | None = None,
+        newton_force_rtol: float | None = None) -> dict:
     """Solves the frames; returns the run's description, per-frame solver records, forces (N) and markers (gel frame,
-    mm)."""
+    mm). ``newton_force_rtol`` replaces the scene's [physics] newton_force_rtol (0: the step-length test alone)."""
     setup = load_setup(scene) if sequence is None else _sequence_setup(scene, sequence)
     physics = setup.scene.physics.model_copy(update={"degree": degree} | (
-        {"friction_lag_moves": friction_lag_moves} if friction_lag_moves is not None else {}))
+        {"friction_lag_moves": friction_lag_moves} if friction_lag_moves is not None else {}) | (
+        {"newton_force_rtol": newton_force_rtol} if newton_force_rtol is not None else {}))
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     if trajectory_from is not None:
         setup = _with_trajectories(setup, trajectory_from)
@@ -97,7 +101,8 @@ def run(scene: Path, degree: int, frames: int, trajectory_from: Path | None, seq
     QuasiStaticSolver.solve_frame = recording
     what = f"{scene}" + (f" with the trajectories of {trajectory_from}" if trajectory_from else "") + (
         f" sequence {sequence}" if sequence is not None else "") + (f", friction {friction:g}" if friction is not None
-                                                                     else "")
+                                                                     else "") + (
+        f", newton_force_rtol {newton_force_rtol:g}" if newton_force_rtol is not None else "")
     device = physics_device(setup.scene.physics.device)
     print(f"{what} on a {os.cpu_count()}-core CPU (physics device {device}), P{degree}, {frames} frame(s)")
     clock, t0, load0 = StageClock(), time.perf_counter(), os.getloadavg()[0]
@@ -172,6 +177,8 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
                                                "(after --trajectory-from)"),
+         newton_force_rtol: float | None = typer.Option(None, min=0.0, max=0.1, help="replace the scene's [physics] "
+                                                        "newton_force_rtol (Newton's force test; 0: off)"),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
          lag_move_ratio: float | None = solver_variants.LAG_MOVE_RATIO_OPTION,
@@ -187,7 +194,7 @@ def main(scene: Path, degree: int = typer.Option(2, min=1, max=2), frames: int =
         {"max_newton_iterations": max_newton_iterations} if max_newton_iterations is not None else {}))
     if not friction_memory:
         print("friction's sticking stretch is not carried from step to step (--no-friction-memory)")
-    result = run(scene, degree, frames, trajectory_from, sequence, friction_lag_moves, friction)
+    result = run(scene, degree, frames, trajectory_from, sequence, friction_lag_moves, friction, newton_force_rtol)
     if benchmarks:
         from benchmarks_md import update_section
 

@@ -198,7 +198,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     physics = setup.scene.physics.model_copy(update={"device": device, "linear_solver": linear_solver} | (
         {"friction_lag_moves": friction_lag_moves} if friction_lag_moves else {}) | (
         {"coarse_cell_mm": coarse_cell_mm} if coarse_cell_mm is not None else {}) | (
-        {"newton_force_rtol": newton_force_rtol or None} if newton_force_rtol is not None else {}))
+        {"newton_force_rtol": newton_force_rtol} if newton_force_rtol is not None else {}))
     setup = dataclasses.replace(setup, scene=setup.scene.model_copy(update={"physics": physics}))
     clock = PhaseClock()
     missing = [name for cls, names in PHASES.items() for name in names if not hasattr(cls, name)]

@@ -1,4 +1,5 @@
-"""FEM error against run time on a press-and-slide scene with friction: contact mesh size x lag moves x load steps.
+"""FEM error against run time on a press-and-slide scene with friction: contact mesh size x lag moves x load steps x
+Newton's force test.
 
     .venv/bin/python scripts/fem_slide_error_vs_runtime.py [--scene scenes/press_slide.toml] [--frames 10]
         [--settings 1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4] [--reference 0.3/4] [--device cpu|cuda]
@@ -7,18 +8,20 @@
 
 ``scripts/fem_error_vs_runtime.py`` measures a frictionless press on a structured quarter block; datasets are made of
 presses *and slides* with friction, on fTetWild meshes of the whole gel. This script solves a scene as ``generate``
-does, once per setting EDGE/LAGS[/SPLIT]:
+does, once per setting EDGE/LAGS[/SPLIT[/RTOL]]:
 - ``[mesh] contact_edge_mm`` = EDGE, the element size over the contact region (mm);
 - ``[physics] friction_lag_moves`` = LAGS, friction's lag moves per load step (newton.py);
 - SPLIT (default 1): every trajectory segment's frames times SPLIT, each frame then solved in SPLIT load steps on the
   same mesh. Friction is path dependent, so finer load steps are a refinement of their own. Friction's smoothing
-  (``friction_slip_mm``) applies to each load step's slip, so a split also loosens it against the frame's motion.
+  (``friction_slip_mm``) applies to each load step's slip, so a split also loosens it against the frame's motion;
+- RTOL (default: the scene's): ``[physics] newton_force_rtol``, Newton's force test (newton.py ``_force_balanced``:
+  also converged where |gradient| is at most RTOL times the normal load on the gel's support); 0 turns it off.
 
 Everything else is as in the scene. The markers are the scene's own (each mesh embeds them anew), so every setting's
 marker centres compare with the reference's (a finer setting) frame by frame. Per setting:
 - tets and P2 unknowns;
-- physics seconds per frame, the median over frames 1..N-1 (frame 0 also makes the solver's kept matrices and graphs;
-  kernels are loaded by a 2-frame warm-up solve first);
+- physics seconds per frame, the median and the mean over frames 1..N-1 (frame 0 also makes the solver's kept matrices
+  and graphs; kernels are loaded by a 2-frame warm-up solve first; the plot takes the median);
 - Newton iterations per frame (median) and the load steps each frame took (SPLIT, or more where a step was halved);
 - against the reference: the marker error, the largest and the RMS over all frames and markers (mm, and % of the
   largest reference marker displacement from rest), and the largest per frame; the force error, the largest over frames
@@ -70,22 +73,28 @@ class Setting(NamedTuple):
     edge_mm: float  # [mesh] contact_edge_mm
     lag_moves: int  # [physics] friction_lag_moves
     split: int = 1  # each frame solved as this many load steps (the trajectory's frames times SPLIT)
+    force_rtol: float | None = None  # [physics] newton_force_rtol (0: off); None: the scene's
 
     def label(self) -> str:
-        return f"{self.edge_mm:g}/{self.lag_moves}" + (f"/{self.split}" if self.split > 1 else "")
+        rtol = f"/{self.force_rtol:g}" if self.force_rtol is not None else ""
+        return f"{self.edge_mm:g}/{self.lag_moves}" + (f"/{self.split}" if self.split > 1 or rtol else "") + rtol
 
 
 def parse_setting(text: str) -> Setting:
-    """"EDGE/LAGS[/SPLIT]" -> Setting."""
+    """"EDGE/LAGS[/SPLIT[/RTOL]]" -> Setting."""
     parts = text.strip().split("/")
     try:
-        if len(parts) not in (2, 3):
+        if len(parts) not in (2, 3, 4):
             raise ValueError
-        setting = Setting(float(parts[0]), int(parts[1]), int(parts[2]) if len(parts) == 3 else 1)
+        setting = Setting(float(parts[0]), int(parts[1]), int(parts[2]) if len(parts) >= 3 else 1,
+                          float(parts[3]) if len(parts) == 4 else None)
     except ValueError:
-        raise typer.BadParameter(f"{text!r}: expected EDGE/LAGS or EDGE/LAGS/SPLIT, e.g. 0.8/4 or 0.8/4/2") from None
+        raise typer.BadParameter(f"{text!r}: expected EDGE/LAGS, EDGE/LAGS/SPLIT or EDGE/LAGS/SPLIT/RTOL, e.g. 0.8/4, "
+                                 "0.8/4/2 or 0.8/4/1/1e-3") from None
     if setting.edge_mm <= 0 or setting.lag_moves < 1 or setting.split < 1:
         raise typer.BadParameter(f"{text!r}: EDGE must be > 0 mm, LAGS and SPLIT >= 1")
+    if setting.force_rtol is not None and not 0.0 <= setting.force_rtol <= 0.1:
+        raise typer.BadParameter(f"{text!r}: RTOL must be within [0, 0.1] (0: the force test off)")
     return setting
 
 
@@ -100,14 +109,17 @@ def with_split(setup, split: int):
 
 def with_setting(setup, setting: Setting, device: str, friction: float | None = None,
                  slip_mm: float | None = None):
-    """The scene setup with the contact mesh size and lag moves replaced, and if given the physics device, every
-    indenter's friction coefficient and friction's smoothing (not the split: ``solve`` splits the frames)."""
+    """The scene setup with the contact mesh size, lag moves and (where the setting names it) Newton's force test
+    replaced, and if given the physics device, every indenter's friction coefficient and friction's smoothing (not the
+    split: ``solve`` splits the frames)."""
     if friction is not None:
         setup = with_friction(setup, friction)
     scene = setup.scene
     physics = scene.physics.model_copy(update={"friction_lag_moves": setting.lag_moves}
                                        | ({"device": device} if device else {})
-                                       | ({"friction_slip_mm": slip_mm} if slip_mm is not None else {}))
+                                       | ({"friction_slip_mm": slip_mm} if slip_mm is not None else {})
+                                       | ({"newton_force_rtol": setting.force_rtol}
+                                          if setting.force_rtol is not None else {}))
     mesh = scene.mesh.model_copy(update={"contact_edge_mm": setting.edge_mm})
     return dataclasses.replace(setup, scene=scene.model_copy(update={"physics": physics, "mesh": mesh}))
 
@@ -162,6 +174,12 @@ def errors(row: dict, ref: dict, rest_mm: np.ndarray) -> dict:
             "marker_rms_pct": 100 * rms / scale, "force_max_pct": 100 * force, "largest_displacement_mm": scale}
 
 
+def force_rtol(setting: Setting, base) -> float:
+    """The force test's rtol a setting solves with (0: off): its own, or the scene's."""
+    rtol = setting.force_rtol if setting.force_rtol is not None else base.scene.physics.newton_force_rtol
+    return float(rtol or 0.0)
+
+
 def summary(row: dict) -> dict:
     """Median physics seconds per frame over frames 1..N-1 and median Newton iterations per frame."""
     return {"s_frame": statistics.median(row["seconds"][1:] or row["seconds"]),
@@ -169,7 +187,8 @@ def summary(row: dict) -> dict:
 
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
-    """Marker error (RMS and largest) against physics seconds per frame, one line per (lag moves, split)."""
+    """Marker error (RMS and largest) against physics seconds per frame, one line per (lag moves, split, force
+    test)."""
     import matplotlib
     import matplotlib.ticker
 
@@ -177,14 +196,15 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     rows = [r for r in rows if "failed" not in r]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4), dpi=90)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5.2), dpi=90)
     for ax, key, label in ((axes[0], "marker_rms_mm", "marker error, RMS over frames and markers (mm)"),
                            (axes[1], "marker_max_mm", "marker error, largest (mm)")):
-        for lags, split in sorted({(r["lag_moves"], r["split"]) for r in rows}):
+        for lags, split, rtol in sorted({line_of(r) for r in rows}):
             pts = sorted((r["s_frame"], max(r[key], 1e-5), r["edge_mm"]) for r in rows
-                         if (r["lag_moves"], r["split"]) == (lags, split))
+                         if line_of(r) == (lags, split, rtol))
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", ms=5, lw=0.8,
-                    label=f"{lags} lag move(s) a step" + (f", frames split in {split}" if split > 1 else ""))
+                    label=f"{lags} lag move(s) a step" + (f", frames split in {split}" if split > 1 else "")
+                    + (f", force test {rtol:g}" if rtol else ""))
             for t, e, h in pts:
                 ax.annotate(f"{h:g} mm", (t, e), fontsize=7, xytext=(3, 3), textcoords="offset points")
         ax.set_xscale("log")
@@ -196,9 +216,10 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
         ax.set_xlabel("physics seconds per frame (median)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
+    handles, labels = axes[0].get_legend_handles_labels()  # one legend for both, below them: it hid points inside
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7)
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.04 * ((len(labels) + 2) // 3) + 0.02, 1.0, 1.0))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
 
@@ -213,11 +234,15 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
     except SimulationFailed:
         pass
     rest = np.asarray(base.sensor.markers_rest_gel_mm)
+
+    def described(setting: Setting) -> dict:  # the row's setting, with the force test it solved with
+        return setting._asdict() | {"force_rtol": force_rtol(setting, base)}
+
     try:
         ref = solve(with_setting(base, ref_setting, device, friction, slip_mm), frames, ref_setting.split)
     except SimulationFailed as e:
         raise SystemExit(f"the reference {ref_setting.label()} failed: {e}") from None
-    ref |= ref_setting._asdict() | summary(ref)
+    ref |= described(ref_setting) | summary(ref)
     print(f"reference {ref_setting.label()}: {ref['tets']} tets, {ref['s_frame']:.2f} s/frame, {ref['iterations']}",
           flush=True)
     rows = []
@@ -226,10 +251,10 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
             r = solve(with_setting(base, setting, device, friction, slip_mm), frames, setting.split)
         except SimulationFailed as e:
             why = str(e) + (f" (counting the frames split in {setting.split})" if setting.split > 1 else "")
-            rows.append(setting._asdict() | {"failed": why})
+            rows.append(described(setting) | {"failed": why})
             print(f"{setting.label()}: failed, {why}", flush=True)
             continue
-        r |= setting._asdict() | summary(r) | errors(r, ref, rest)
+        r |= described(setting) | summary(r) | errors(r, ref, rest)
         rows.append(r)
         print(f"{setting.label()}: {r['tets']} tets, {r['s_frame']:.2f} s/frame, iterations {r['iterations']}, markers "
               f"max {r['marker_max_mm']:.4f} rms {r['marker_rms_mm']:.4f} mm, force {r['force_max_pct']:.2f} %",
@@ -244,21 +269,36 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
     return {"reference": ref, "rows": rows, "meta": meta}
 
 
+def line_of(row: dict) -> tuple[int, int, float]:
+    """A row's plotted line: (lag moves, split, force test rtol; 0 off). Rows of runs before the force test was an
+    axis have none."""
+    return row["lag_moves"], row["split"], row.get("force_rtol") or 0.0
+
+
+def mean_seconds(row: dict) -> float:
+    """Mean physics seconds per frame over frames 1..N-1 (the median, ``summary``, hides the slowest frames)."""
+    return statistics.mean(row["seconds"][1:] or row["seconds"])
+
+
+def rtol_cell(row: dict) -> str:
+    return f"{row['force_rtol']:g}" if row.get("force_rtol") else "off"
+
+
 def report(data: dict, name: str) -> str:
     """The BENCHMARKS.md section's markdown."""
     ref, rows, meta = data["reference"], data["rows"], data["meta"]
-    header = ("| contact edge (mm) | lag moves a step | each frame split into | tets | P2 unknowns | "
-              "physics s / frame (median) | Newton it. / frame (median; all frames) | load steps taken per frame | "
-              "marker err max mm (%) | marker err RMS mm (%) | marker err max per frame (mm) | "
-              "force err max (% of max force) |")
+    header = ("| contact edge (mm) | lag moves a step | each frame split into | force test (rtol) | tets | "
+              "P2 unknowns | physics s / frame (median; mean) | Newton it. / frame (median; all frames) | "
+              "load steps taken per frame | marker err max mm (%) | marker err RMS mm (%) | "
+              "marker err max per frame (mm) | force err max (% of max force) |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in [*rows, ref]:
         if "failed" in r:
-            lines.append(f"| {r['edge_mm']:g} | {r['lag_moves']} | {r['split']} | failed: {r['failed']} |"
-                         + " |" * 8)
+            lines.append(f"| {r['edge_mm']:g} | {r['lag_moves']} | {r['split']} | {rtol_cell(r)} | "
+                         f"failed: {r['failed']} |" + " |" * 8)
             continue
         cells = [f"{r['edge_mm']:g}" + (" (reference)" if r is ref else ""), str(r["lag_moves"]), str(r["split"]),
-                 str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}",
+                 rtol_cell(r), str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}; {mean_seconds(r):.2f}",
                  f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}",
                  ", ".join(map(str, r["substeps"]))]
         cells += ["-"] * 4 if r is ref else [
@@ -285,9 +325,10 @@ def report(data: dict, name: str) -> str:
 
 def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frames: int = typer.Option(10, min=2),
          settings: str = typer.Option("1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4",
-                                      help="EDGE/LAGS or EDGE/LAGS/SPLIT, comma-separated: contact edge (mm) / lag "
-                                      "moves / load steps a frame"),
-         reference: str = typer.Option("0.3/4", help="EDGE/LAGS or EDGE/LAGS/SPLIT of the reference solution"),
+                                      help="EDGE/LAGS[/SPLIT[/RTOL]], comma-separated: contact edge (mm) / lag "
+                                      "moves / load steps a frame / Newton's force test (0: off; default: the "
+                                      "scene's)"),
+         reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT[/RTOL]] of the reference solution"),
          device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
                                                "(0: frictionless); the names end in _friction_MU"),

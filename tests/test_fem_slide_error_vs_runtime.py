@@ -20,10 +20,27 @@ FIXTURE = Path(__file__).resolve().parent / "fixtures" / "tiny_press_slide.toml"
 def test_settings_parse_and_refuse_what_they_cannot_be():
     assert study.parse_setting("0.8/4") == study.Setting(0.8, 4, 1)
     assert study.parse_setting(" 0.65/1/2 ") == study.Setting(0.65, 1, 2)
+    assert study.parse_setting("0.8/4/1/1e-3") == study.Setting(0.8, 4, 1, 1e-3)
+    assert study.parse_setting("0.8/4/1/0") == study.Setting(0.8, 4, 1, 0.0)
     assert study.Setting(0.65, 1, 2).label() == "0.65/1/2" and study.Setting(0.8, 4).label() == "0.8/4"
-    for bad in ("0.8", "0.8/4/2/1", "a/4", "0/4", "0.8/0", "0.8/4/0"):
+    assert study.Setting(0.8, 4, 1, 3e-3).label() == "0.8/4/1/0.003"
+    assert study.Setting(0.8, 4, 1, 0.0).label() == "0.8/4/1/0"
+    for bad in ("0.8", "0.8/4/2/1", "0.8/4/2/-1e-3", "0.8/4/1/1e-3/2", "a/4", "0/4", "0.8/0", "0.8/4/0"):
         with pytest.raises(typer.BadParameter):
             study.parse_setting(bad)
+
+
+def test_a_setting_sets_the_force_test_or_leaves_the_scenes():
+    """RTOL replaces the scene's [physics] newton_force_rtol (0: off); without it the scene's stands (3e-3 by default,
+    config/scene.py), and the row records what was solved with."""
+    setup = load_setup(FIXTURE)
+    assert setup.scene.physics.newton_force_rtol == 3e-3
+    for setting, rtol in ((study.Setting(1.5, 4), 3e-3), (study.Setting(1.5, 4, 1, 1e-3), 1e-3),
+                          (study.Setting(1.5, 4, 1, 0.0), 0.0)):
+        assert study.with_setting(setup, setting, "cpu").scene.physics.newton_force_rtol == rtol
+        assert study.force_rtol(setting, setup) == rtol
+    assert study.rtol_cell({"force_rtol": 0.0}) == "off" and study.rtol_cell({}) == "off"
+    assert study.rtol_cell({"force_rtol": 3e-3}) == "0.003"
 
 
 def test_p2_unknowns_count_vertices_and_edges():
@@ -81,12 +98,14 @@ def test_a_failed_setting_gets_its_row_and_the_others_go_on(monkeypatch):
                 "iterations": [3] * frames, "substeps": [split] * frames, "tets": 10, "dofs": 30}
 
     monkeypatch.setattr(study, "solve", fake_solve)
-    settings = [study.Setting(2.0, 4), study.Setting(1.8, 4, 2)]
+    settings = [study.Setting(2.0, 4), study.Setting(1.8, 4, 2, 0.0)]
     data = study.measure(FIXTURE, load_setup(FIXTURE), 2, settings, study.Setting(1.5, 4), "cpu", False, None, None)
     failed, solved = data["rows"]
     assert failed["failed"] == "frame 1: did not converge" and "marker_max_mm" not in failed
     assert solved["marker_max_mm"] == pytest.approx(0.01) and solved["split"] == 2
+    assert failed["force_rtol"] == 3e-3 and solved["force_rtol"] == 0.0  # the scene's, and the setting's (off)
     text = study.report(data, "fem_slide_error_vs_runtime")
     rows = [line for line in text.splitlines() if line.startswith("| ") and "contact edge" not in line]
-    assert [line.count("|") for line in rows] == [13, 13, 13]  # 12 cells each: the failed row too
+    assert [line.count("|") for line in rows] == [14, 14, 14]  # 13 cells each: the failed row too
     assert "failed: frame 1: did not converge" in rows[0] and rows[2].startswith("| 1.5 (reference)")
+    assert [line.split("|")[4].strip() for line in rows] == ["0.003", "off", "0.003"]

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from conftest import REPO
 
 from transtac_sim.dataset.sequence import StageClock
@@ -104,3 +106,35 @@ def test_an_indenter_that_only_hovers_needs_no_fem(monkeypatch, tmp_path):
     pressed = dataclasses.replace(setup, indenters=[dataclasses.replace(
         setup.indenters[0], config=setup.indenters[0].config.model_copy(update={"start_gap_mm": 0.0}))])
     assert pressed.has_contact
+
+
+def test_a_scene_solves_with_its_physics_settings(monkeypatch):
+    """simulation.py hands the scene's [physics] to the solver: Newton's force test at the scenes' default 3e-3 where
+    a scene leaves it unset (tiny_press), off at 0, train_random's 1e-3."""
+    import transtac_sim.meshing
+    import transtac_sim.physics
+
+    class Stop(Exception):
+        pass
+
+    def solver_settings(setup):
+        seen = []
+
+        def capture(*args, settings, **kwargs):
+            seen.append(settings)
+            raise Stop
+
+        monkeypatch.setattr(transtac_sim.physics, "QuasiStaticSolver", capture)
+        meshed = SimpleNamespace(mesh=SimpleNamespace(vertices_mm=np.zeros((4, 3)), tets=np.array([[0, 1, 2, 3]])))
+        monkeypatch.setattr(transtac_sim.meshing, "mesh_gel", lambda s: meshed)
+        with pytest.raises(Stop):
+            next(simulate_frames(setup, 1, StageClock()))
+        (settings,) = seen
+        return settings
+
+    tiny = load_setup(REPO / "tests" / "fixtures" / "tiny_press.toml")
+    assert solver_settings(tiny).newton_force_rtol == 3e-3
+    physics = tiny.scene.physics.model_copy(update={"newton_force_rtol": 0.0, "friction_lag_moves": 2})
+    off = solver_settings(dataclasses.replace(tiny, scene=tiny.scene.model_copy(update={"physics": physics})))
+    assert off.newton_force_rtol is None and off.friction_lag_moves == 2
+    assert solver_settings(load_setup(REPO / "scenes" / "train_random.toml")).newton_force_rtol == 1e-3

@@ -118,7 +118,8 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             [RigidIndenter.from_trimesh(i.config.name, i.mesh.mesh, i.config.friction) for i in setup.indenters],
             settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm, linear_solver=cfg.linear_solver,
                                     slip_eps_mm=cfg.friction_slip_mm, friction_lag_moves=cfg.friction_lag_moves,
-                                    coarse_cell_mm=cfg.coarse_cell_mm or None, newton_force_rtol=cfg.newton_force_rtol),
+                                    coarse_cell_mm=cfg.coarse_cell_mm or None,
+                                    newton_force_rtol=cfg.newton_force_rtol or None),
             device=physics_device(cfg.device))
     faces = g.boundary_faces()
     thickness = setup.sensor.gel_size_mm[2]
