@@ -251,7 +251,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
-          f"forcing max {forcing_max:g}, lag move ratios {newton.LAG_MOVE_RATIOS}"
+          f"forcing max {forcing_max:g}, lag move ratios {solver_variants.friction_lag.LAG_MOVE_RATIOS}"
           f"{'' if press_lag_move_ratio is None else f' ({press_lag_move_ratio:g} on presses)'}, estimate rtol "
           f"{device_linear.ESTIMATE_RTOL:g} (cap {device_linear.ESTIMATE_CAP_FACTOR:g}x), "
           f"friction lag moves {physics.friction_lag_moves}, exact below "

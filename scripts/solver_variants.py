@@ -13,6 +13,11 @@ from transtac_sim.physics import device_linear, newton, settings
 from transtac_sim.physics.newton import NewtonSteps
 
 try:
+    from transtac_sim.physics import friction_lag
+except ImportError:  # an older package tree through PYTHONPATH: newton.py held friction's lag moves
+    friction_lag = newton
+
+try:
     from transtac_sim.physics.contact_prediction import ContactPrediction
 except ImportError:  # an older package tree through PYTHONPATH: it had no contact prediction to switch off
     ContactPrediction = type("ContactPrediction", (), {})
@@ -31,19 +36,20 @@ def apply(warm_start: str = "all", exact_below: float = newton.EXACT_BELOW,
     """``warm_start``: the guesses a (sub)step may start from (warm_start.py ``_warm_start``): all, extrapolated (not
     the slide's carried one), none (the last converged state) or carried (on a slide the carried guess alone, against
     the last state; otherwise all: ``_carried_on_slides``); ``exact_below``: newton.EXACT_BELOW; ``lag_move_ratio``:
-    newton.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``, ``estimate_cap_factor``:
-    the device's step estimate (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR); ``estimate_band``:
-    newton.ESTIMATE_REFINE_BAND as "LO,HI" (None: as it is); ``press_lag_move_ratio``: on load steps that only press,
-    the ratio in place of newton.LAG_MOVE_RATIOS (``_moves_lag_at_on_presses``; None: as on other steps);
+    friction_lag.LAG_MOVE_RATIOS of both linear solvers (None: as they are); ``estimate_rtol``,
+    ``estimate_cap_factor``: the device's step estimate (device_linear.ESTIMATE_RTOL, ESTIMATE_CAP_FACTOR);
+    ``estimate_band``: friction_lag.ESTIMATE_REFINE_BAND as "LO,HI" (None: as it is); ``press_lag_move_ratio``: on load
+    steps that only press, the ratio in place of friction_lag.LAG_MOVE_RATIOS (``_moves_lag_at_on_presses``; None: as
+    on other steps);
     ``contact_prediction``: off, Newton takes its steps without contact_prediction.py's second solve (the solver
     before it)."""
     if warm_start not in WARM_STARTS:
         raise typer.BadParameter(f"--warm-start must be one of {', '.join(WARM_STARTS)}, got {warm_start!r}")
     if estimate_band is not None:
-        newton.ESTIMATE_REFINE_BAND = _band(estimate_band)
+        friction_lag.ESTIMATE_REFINE_BAND = _band(estimate_band)
     newton.EXACT_BELOW = exact_below
     if lag_move_ratio is not None:
-        newton.LAG_MOVE_RATIOS = dict.fromkeys(newton.LAG_MOVE_RATIOS, lag_move_ratio)
+        friction_lag.LAG_MOVE_RATIOS = dict.fromkeys(friction_lag.LAG_MOVE_RATIOS, lag_move_ratio)
     if press_lag_move_ratio is not None:
         _moves_lag_at_on_presses(press_lag_move_ratio)
     if not contact_prediction:
@@ -81,9 +87,9 @@ def presses_only(step: np.ndarray, tol_mm: float) -> bool:
 
 def _moves_lag_at_on_presses(ratio: float) -> None:
     """``--press-lag-move-ratio``: on a load step that ``presses_only`` and may move friction's lag more than once,
-    the lag moves once Newton's estimated remaining step is below ``ratio`` x |u - u_lag| (newton.py ``_move_lag``)
-    instead of the linear solver's newton.LAG_MOVE_RATIOS. Measured with 1 (moves as early as the estimate allows):
-    BENCHMARKS.md ``fem_press_lag_moves_gpu``."""
+    the lag moves once Newton's estimated remaining step is below ``ratio`` x |u - u_lag| (friction_lag.py
+    ``_move_lag``) instead of the linear solver's friction_lag.LAG_MOVE_RATIOS. Measured with 1 (moves as early as the
+    estimate allows): BENCHMARKS.md ``fem_press_lag_moves_gpu``."""
     solve_step, lag_threshold = NewtonSteps._solve_step, NewtonSteps._lag_threshold
     pressing = {}  # solver id -> whether its current load step only presses
 
@@ -141,15 +147,15 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray) -> None:
 
     NewtonSteps._solve_step, NewtonSteps._newton = matched_step, from_oracle
     NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False
-    # the step estimate is then compared with newton_tol_mm alone (newton.py ``_estimate_band``)
+    # the step estimate is then compared with newton_tol_mm alone (friction_lag.py ``_estimate_band``)
     NewtonSteps._lag_change = lambda self: 0.0
 
 
 def _band(text: str) -> tuple[float, float]:
     """``--estimate-band``'s "LO,HI" (multiples of newton_tol_mm, 0 <= LO <= HI), for a tree that has the band."""
-    if not hasattr(newton, "ESTIMATE_REFINE_BAND"):
-        raise typer.BadParameter("--estimate-band: this package has no newton.ESTIMATE_REFINE_BAND (an older tree: it "
-                                 "refines every step estimate below 10 newton_tol_mm)")
+    if not hasattr(friction_lag, "ESTIMATE_REFINE_BAND"):
+        raise typer.BadParameter("--estimate-band: this package has no friction_lag.ESTIMATE_REFINE_BAND (an older "
+                                 "tree: it refines every step estimate below 10 newton_tol_mm)")
     try:
         low, high = (float(v) for v in text.split(","))
     except ValueError:
@@ -177,18 +183,18 @@ def friction_memory() -> bool:
 WARM_START_OPTION = typer.Option("all", help="the guesses a (sub)step may start from: all, extrapolated (no carried "
                                  "guess on slides), none, or carried (on slides the carried guess alone)")
 EXACT_BELOW_OPTION = typer.Option(newton.EXACT_BELOW, min=0.0, help="newton.EXACT_BELOW (multiples of newton_tol_mm)")
-LAG_MOVE_RATIO_OPTION = typer.Option(None, min=0.0, help="replace newton.LAG_MOVE_RATIOS (of both linear solvers; "
-                                     f"default {newton.LAG_MOVE_RATIOS})")
+LAG_MOVE_RATIO_OPTION = typer.Option(None, min=0.0, help="replace friction_lag.LAG_MOVE_RATIOS (of both linear "
+                                     f"solvers; default {friction_lag.LAG_MOVE_RATIOS})")
 PRESS_LAG_MOVE_RATIO_OPTION = typer.Option(None, min=0.0, help="on load steps that only press (and may move "
                                            "friction's lag more than once), this ratio in place of "
-                                           "newton.LAG_MOVE_RATIOS")
+                                           "friction_lag.LAG_MOVE_RATIOS")
 ESTIMATE_RTOL_OPTION = typer.Option(device_linear.ESTIMATE_RTOL, min=0.0, max=1.0,
                                     help="device_linear.ESTIMATE_RTOL (the device's step estimate)")
 ESTIMATE_CAP_FACTOR_OPTION = typer.Option(device_linear.ESTIMATE_CAP_FACTOR, min=0.0,
                                           help="device_linear.ESTIMATE_CAP_FACTOR")
-ESTIMATE_BAND_OPTION = typer.Option(None, help="newton.ESTIMATE_REFINE_BAND as LO,HI: where the step estimate is "
+ESTIMATE_BAND_OPTION = typer.Option(None, help="friction_lag.ESTIMATE_REFINE_BAND as LO,HI: where the step estimate is "
                                     "refined to the tight tolerance, multiples of newton_tol_mm (default "
-                                    f"{getattr(newton, 'ESTIMATE_REFINE_BAND', None)}; 0,10 as before it)")
+                                    f"{getattr(friction_lag, 'ESTIMATE_REFINE_BAND', None)}; 0,10 as before it)")
 FRICTION_LAG_MOVES_OPTION = typer.Option(None, min=1, help="replace the scene's [physics] friction_lag_moves (per step)")
 FRICTION_MEMORY_OPTION = typer.Option(True, "--friction-memory/--no-friction-memory",
                                       help="carry friction's sticking stretch from step to step "

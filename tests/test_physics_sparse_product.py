@@ -21,7 +21,7 @@ from transtac_sim.physics import (
     contact,
     device_linear,
     elasticity,
-    newton,
+    friction_lag,
 )
 from transtac_sim.physics import linear as linear_module
 from transtac_sim.physics.box_mesh import gel_block
@@ -250,9 +250,9 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
     length = float(np.abs(loose.numpy()).max())  # below the band [refine_above, exact_below): the loose one is kept
     kept = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device), exact_below=1e9, refine_above=2.0 * length)
     assert linear.cg_tol < residual(kept) <= device_linear.ESTIMATE_RTOL
-    # the premise of newton.ESTIMATE_REFINE_BAND (low, high): a loose length below low x newton_tol_mm refines to below
+    # the premise of friction_lag.ESTIMATE_REFINE_BAND (low, high): a loose length below low x newton_tol_mm refines to below
     # newton_tol_mm and one above high x newton_tol_mm to above it (the convergence test decides as the refined would)
-    low, high = newton.ESTIMATE_REFINE_BAND
+    low, high = friction_lag.ESTIMATE_REFINE_BAND
     assert 1.0 / high < float(np.abs(tight.numpy()).max()) / length < 1.0 / low
     monkeypatch.setattr(device_linear, "ESTIMATE_RTOL", 1e-12)  # not reachable within 2x the system's iterations
     assert linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device)) is None and linear.estimates_unconverged == 1
@@ -471,11 +471,11 @@ def test_direct_path_step_estimate_is_refined_only_within_its_band(monkeypatch):
 
 
 def test_step_estimate_band_is_about_the_threshold_it_is_compared_with():
-    """``_estimate_band`` (newton.py): ``ESTIMATE_REFINE_BAND`` = (0.25, 2) x newton_tol_mm where friction's lag may not
+    """``_estimate_band`` (friction_lag.py): ``ESTIMATE_REFINE_BAND`` = (0.25, 2) x newton_tol_mm where friction's lag may not
     move (no change given, or one below 10 newton_tol_mm); where it may, x the lag's threshold (``_move_lag``:
     max(tol, r |u - u_lag|), r = 0.1 on the direct path), capped at ``ESTIMATE_REFINED_BELOW`` = 10 newton_tol_mm, and
     empty where the band lies above that."""
-    assert newton.ESTIMATE_REFINE_BAND == (0.25, 2.0) and newton.ESTIMATE_REFINED_BELOW == 10.0
+    assert friction_lag.ESTIMATE_REFINE_BAND == (0.25, 2.0) and friction_lag.ESTIMATE_REFINED_BELOW == 10.0
     solver, _ = _pressed_solver()
     tol = solver.settings.newton_tol_mm
 
@@ -507,12 +507,12 @@ def test_newton_passes_its_refinement_band_to_the_step_estimate(monkeypatch):
     Q[2, 3] -= 0.05
     solver.solve_frame([Q])
     tol = solver.settings.newton_tol_mm
-    low, high = newton.ESTIMATE_REFINE_BAND
+    low, high = friction_lag.ESTIMATE_REFINE_BAND
     assert asked and all(kw.keys() == {"exact_below", "refine_above"} for kw in asked)
     convergence = {"refine_above": low * tol, "exact_below": high * tol}  # where the lag may not move
     assert any(kw == pytest.approx(convergence) for kw in asked)
     assert any(kw["refine_above"] > low * tol * (1 + 1e-9) for kw in asked)  # about a lag threshold (friction 0.5)
-    assert all(kw["exact_below"] <= newton.ESTIMATE_REFINED_BELOW * tol * (1 + 1e-12) for kw in asked)
+    assert all(kw["exact_below"] <= friction_lag.ESTIMATE_REFINED_BELOW * tol * (1 + 1e-12) for kw in asked)
 
 
 def test_contact_outside_the_indenters_box_makes_no_query():

@@ -12,7 +12,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import trace_sequence  # noqa: E402
 
-from transtac_sim.physics import QuasiStaticSolver, device_linear, linear, newton  # noqa: E402
+from transtac_sim.physics import QuasiStaticSolver, device_linear, friction_lag, linear  # noqa: E402
 from transtac_sim.physics.device_linear import DeviceSolves  # noqa: E402
 from transtac_sim.physics.newton import NewtonSteps  # noqa: E402
 from transtac_sim.physics.warm_start import WarmStart  # noqa: E402
@@ -121,7 +121,7 @@ def test_carried_warm_start_only_where_a_single_indenter_slides():
 def test_press_lag_move_ratio_only_on_presses_that_may_move_the_lag_again(monkeypatch):
     """solver_variants ``--press-lag-move-ratio`` (BENCHMARKS.md ``fem_press_lag_moves_gpu``): ``presses_only`` tells a
     press from a slide, a turn, a lift and a hold; the lag threshold takes the press ratio on such a load step where the
-    lag may move more than once, and newton.LAG_MOVE_RATIOS elsewhere."""
+    lag may move more than once, and friction_lag.LAG_MOVE_RATIOS elsewhere."""
     solver_variants, tol = trace_sequence.solver_variants, 1e-4
     assert solver_variants.presses_only(np.array([0, 0, -0.1, 0, 0, 0.0]), tol)
     assert solver_variants.presses_only(np.array([0, 0, -0.1, 0, 0, 0, 0, 0, 0, 0, 0, 0.0]), tol)  # the other holds
@@ -142,7 +142,7 @@ def test_press_lag_move_ratio_only_on_presses_that_may_move_the_lag_again(monkey
     monkeypatch.setattr(NewtonSteps, "_solve_step", lambda self, poses, prev_poses, may_stall=False: "solved")
     monkeypatch.setattr(NewtonSteps, "_lag_threshold", NewtonSteps._lag_threshold)
     solver_variants._moves_lag_at_on_presses(1.0)
-    slide_ratio = newton.LAG_MOVE_RATIOS["cg"]
+    slide_ratio = friction_lag.LAG_MOVE_RATIOS["cg"]
     for step, lag_moves, ratio in (([0, 0, -0.1, 0, 0, 0], 4, 1.0), ([0.1, 0, 0, 0, 0, 0], 4, slide_ratio),
                                    ([0, 0, -0.1, 0, 0, 0], 1, slide_ratio)):
         stub = Stub(step, lag_moves)

@@ -126,7 +126,7 @@ SHIFTS = (1.0e-2, 1.0, 1.0e2)
 COARSE_REFRESH_STEPS = 10
 
 #: the step estimate (``solve_last``; newton.py) is solved to this relative residual, and on to ``cg_tol`` only where its
-#: length is within the caller's [``refine_above``, ``exact_below``) (newton.py ``_estimate_band``: about the threshold
+#: length is within the caller's [``refine_above``, ``exact_below``) (friction_lag.py ``_estimate_band``: about the threshold
 #: Newton compares it with, where the comparison could go either way); the first stage in at most
 #: ``ESTIMATE_CAP_FACTOR`` times the last converged system's CG iterations. Before, it was solved to 1e-3 within 1x those
 #: iterations, which a system solved to Newton's loose forcing term did not reach: 58 of 103 estimates on the tiny
