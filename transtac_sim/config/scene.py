@@ -76,7 +76,7 @@ class Physics(_Strict):
         default=3e-3, ge=0.0, le=0.1, description="Newton also converges where the force left unbalanced (N, the norm "
         "over the free nodes) is at most this fraction of the normal load on the gel's support, once friction's lag is "
         "settled, whatever its step's length (SolverSettings.newton_force_rtol); 0: the step-length test alone. 3e-3 "
-        "on press_slide (an H100): 0.68-0.76x the physics seconds, markers 0.002 mm further from a finer mesh's "
+        "on press_slide (H100s): 0.68-0.90x the physics seconds, markers 0.002 mm further from a finer mesh's "
         "(0.05 mm away with either); 1e-2 raised their RMS error by a quarter (BENCHMARKS.md fem_force_test_default)")
     device: Literal["auto", "cpu", "cuda"] = "auto"
     friction_slip_mm: float = Field(
