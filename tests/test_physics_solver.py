@@ -455,6 +455,41 @@ def test_force_test_ends_newton_once_the_force_left_is_small(linear_solver):
             np.testing.assert_allclose(r.forces_n[0], ref.forces_n[0], rtol=0, atol=3e-3 * scale)
 
 
+@pytest.mark.parametrize("linear_solver", ["direct", "cg"])
+def test_no_step_estimate_where_the_force_test_holds(monkeypatch, linear_solver):
+    """Where the force test holds, Newton has converged (or moves friction's lag): a step estimate there would decide
+    nothing, and none is made (newton.py ``_newton``). With a step tolerance of 1e-12 mm only the force test can end
+    this press; estimates are made at Newton's passes (each starts with the gradient) where it does not hold, and none
+    at the pass that ends Newton."""
+    from transtac_sim.physics.linear import LinearSolver
+    from transtac_sim.physics.newton import NewtonSteps
+
+    passes = []  # per pass: [force test held, estimate made]
+    gradient, force_balanced, solve_last = QuasiStaticSolver._gradient, NewtonSteps._force_balanced, \
+        LinearSolver.solve_last
+
+    def new_pass(self, *args, **kwargs):
+        passes.append([False, False])
+        return gradient(self, *args, **kwargs)
+
+    def noting_balance(self, g_norm, load):
+        passes[-1][0] = force_balanced(self, g_norm, load)
+        return passes[-1][0]
+
+    def noting_estimate(self, rhs, **kwargs):
+        passes[-1][1] = True
+        return solve_last(self, rhs, **kwargs)
+
+    monkeypatch.setattr(QuasiStaticSolver, "_gradient", new_pass)
+    monkeypatch.setattr(NewtonSteps, "_force_balanced", noting_balance)
+    monkeypatch.setattr(LinearSolver, "solve_last", noting_estimate)
+    _, frame = _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-12, max_newton_iterations=30,
+                                            newton_force_rtol=1e-3))
+    assert frame.record.converged and any(held for held, _ in passes)  # ended by the force test
+    assert any(made for _, made in passes)  # estimates are made
+    assert not any(held and made for held, made in passes)  # but none where the force test held
+
+
 def test_step_ended_out_of_equilibrium_is_halved_not_kept(monkeypatch):
     """A (sub)step that Newton reports as converged with |gradient| above ``max_residual_n`` is not kept (solver.py): it
     is solved again in halves. Here the first step's result is pushed 0.05 mm off its equilibrium at one free node

@@ -126,7 +126,8 @@ class NewtonSteps(FrictionLag):
         times): after a full step (alpha = 1) that step is estimated from the new gradient with the last Hessian
         (``LinearSolver.solve_last``: no assembly, no factorisation, refined to the tight tolerance only where its
         length is near the threshold it is compared with, ``_estimate_band``; not after a lag move made on an estimate,
-        where the step is seldom converged), otherwise it is the full Newton step itself; the estimate also starts the
+        where the step is seldom converged, nor where the force test holds, where it would decide nothing), otherwise it
+        is the full Newton step itself; the estimate also starts the
         next system's solve on the host. The linear solver solves each system to the forcing tolerance
         (``FORCING_MAX``), and to its tight one where the step is within ``EXACT_BELOW`` newton_tol_mm. At convergence a
         penetration above ``penetration_tol_mm`` raises the contact stiffness (``_raise_stiffness``) and Newton goes on
@@ -147,8 +148,11 @@ class NewtonSteps(FrictionLag):
                 return True, iterations, "", 0.0
             g_first = g_first or g_norm
             lag_open = friction and lags < s.friction_lag_moves
-            change = self._lag_change() if full_step and lag_open else None
-            estimate = self._linear.solve_last(rhs, **self._estimate_band(change)) if full_step else None
+            # where the force test holds, a step estimate decides nothing: Newton has converged, or friction's lag moves
+            balanced = self._force_balanced(g_norm, load)
+            change = self._lag_change() if full_step and lag_open and not balanced else None
+            estimate = self._linear.solve_last(rhs, **self._estimate_band(change)) if full_step and not balanced \
+                else None
             remaining = max_abs(estimate) if estimate is not None else np.inf
             if lag_open and self._move_lag(ind, remaining, change):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
@@ -165,7 +169,7 @@ class NewtonSteps(FrictionLag):
                     return True, iterations, "", pen
                 raises, full_step, short_steps = raises + 1, False, 0
                 continue
-            if self._force_balanced(g_norm, load):  # converged on the force left, once friction's lag is settled
+            if balanced:  # converged on the force left, once friction's lag is settled
                 if lag_open and self._move_lag(ind, 0.0):
                     lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                     continue
