@@ -274,7 +274,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if estimates:
         refined = [e for e in estimates if len(e) == 2]
         ratios = [e[1][1] / e[0][1] for e in refined if e[0][1] > 0.0]
-        band = getattr(newton, "ESTIMATE_REFINE_BAND", None)  # (an older tree refines every one below 10 newton_tol)
+        # an older tree has no band: it refines every estimate below 10 newton_tol
+        band = getattr(solver_variants.friction_lag, "ESTIMATE_REFINE_BAND", None)
         rule = f"band {band} x the threshold compared with" if band else "every one below 10 newton_tol"
         print(f"device step estimates refined to the tight tolerance ({rule}): "
               f"{len(refined)} of {len(estimates)}, the loose solves {sum(e[0][0] for e in estimates)} CG iterations, "

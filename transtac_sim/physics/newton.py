@@ -148,7 +148,7 @@ class NewtonSteps(FrictionLag):
                 return True, iterations, "", 0.0
             g_first = g_first or g_norm
             lag_open = friction and lags < s.friction_lag_moves
-            # where the force test holds, a step estimate decides nothing: Newton has converged, or friction's lag moves
+            # where the force test holds, Newton has converged or friction's lag moves whatever a step estimate says
             balanced = self._force_balanced(g_norm, load)
             change = self._lag_change() if full_step and lag_open and not balanced else None
             estimate = self._linear.solve_last(rhs, **self._estimate_band(change)) if full_step and not balanced \
