@@ -128,9 +128,22 @@ def test_refuses_to_mix_datasets(reference: Path):
     from transtac_sim.config import ConfigError
 
     before = _snapshot(reference)
-    with pytest.raises(ConfigError, match="another scene, seed or frame count"):
+    with pytest.raises(ConfigError, match=r"another scene, seed or frame count \(seed: 3 -> 12345\)"):
         generate(SCENE, reference, frames=2, seed=12345)
     assert _snapshot(reference) == before
+
+
+def test_scene_differences_name_the_keys_that_differ():
+    """The refusal to mix datasets names what differs, nested keys dotted (a default changed between package versions
+    shows up as an ordinary difference)."""
+    from transtac_sim.dataset.generate import scene_differences
+
+    old = {"seed": 3, "physics": {"newton_force_rtol": None, "degree": 2}, "name": "a"}
+    new = {"seed": 3, "physics": {"newton_force_rtol": 0.003, "degree": 2}, "name": "a", "sequences": 2}
+    assert scene_differences(old, new) == 'physics.newton_force_rtol: null -> 0.003; sequences: "unset" -> 2'
+    many = {f"k{i}": i for i in range(6)}
+    assert scene_differences({}, many, shown=2) == 'k0: "unset" -> 0; k1: "unset" -> 1; and 4 more'
+    assert scene_differences(old, old) == ""
 
 
 @pytest.mark.parametrize("gpus, workers, share", [(1, 1, 1.0), (2, 1, 1.0), (2, 2, 1.0), (2, 4, 0.5), (1, 2, 0.5),

@@ -104,6 +104,21 @@ def ray_gpu_share(gpus: float, workers: int) -> float:
     return 1.0 / per_gpu
 
 
+def scene_differences(old, new, shown: int = 4) -> str:
+    """The resolved scene's entries (dotted keys) whose values differ between a dataset's manifest (``old``) and this
+    run (``new``), as "key: old -> new", the first ``shown`` of them (a default that changed between versions of this
+    package shows up here too, e.g. physics.newton_force_rtol)."""
+    def flat(value, prefix=""):
+        if isinstance(value, dict):
+            return {k: v for key, item in value.items() for k, v in flat(item, f"{prefix}{key}.").items()}
+        return {prefix.rstrip("."): value}
+
+    a, b = flat(old if isinstance(old, dict) else {}), flat(new)
+    keys = sorted(k for k in a.keys() | b.keys() if a.get(k, "unset") != b.get(k, "unset"))
+    listed = [f"{k}: {json.dumps(a.get(k, 'unset'))} -> {json.dumps(b.get(k, 'unset'))}" for k in keys[:shown]]
+    return "; ".join(listed) + (f"; and {len(keys) - shown} more" if len(keys) > shown else "")
+
+
 def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = None, seed: int | None = None,
              sequences: int | None = None, workers: int = 1, executor: str = "local", address: str | None = None,
              on_frames: Callable[[int, int], None] | None = None, retry_failed: bool = False,
@@ -128,7 +143,8 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
     old = read_manifest(root)
     if old is not None and old.get("scene") != resolved:
         raise ConfigError(root / "manifest.json", [("scene", "this folder holds a dataset of another scene, seed or "
-                                                    "frame count; choose another --out (nothing was changed)")])
+                                                    f"frame count ({scene_differences(old.get('scene'), resolved)}); "
+                                                    "choose another --out (nothing was changed)")])
     # MPS is started before anything is written: where it cannot be, the folder is left as it was
     with mps_server() if mps else nullcontext():
         root.mkdir(parents=True, exist_ok=True)
