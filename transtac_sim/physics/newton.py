@@ -58,9 +58,10 @@ Issue 12, sixth pass, the device path again (press_slide frames 1-9 on an H100: 
 time in three steps, each against the tree before it in one lease; about 0.33 s per frame at the end): the gradient, step
 and step estimate stay on the device and are reduced there to the scalars this loop reads (reductions.py;
 ``fem_device_reductions_gpu``); the step estimate is solved to a loose tolerance within a larger cap instead of running
-into its cap and being thrown away, with friction's lag then moved at a closer remaining step (friction_lag.py ``LAG_MOVE_RATIOS``;
-``fem_step_estimate``); the line search's energy and det F replay CUDA graphs (replay.py; ``fem_graph_replay_gpu``), and
-so do the gradient and Hessian assembly (0.90-0.93x on an H200, ``fem_gradient_hessian_replay_gpu``).
+into its cap and being thrown away, with friction's lag then moved at a closer remaining step (friction_lag.py
+``LAG_MOVE_RATIOS``; ``fem_step_estimate``); the line search's energy and det F replay CUDA graphs (replay.py;
+``fem_graph_replay_gpu``), and so do the gradient and Hessian assembly (0.90-0.93x on an H200,
+``fem_gradient_hessian_replay_gpu``).
 
 Issue 12, seventh pass (contact_prediction.py; BENCHMARKS.md ``fem_contact_prediction_gpu``): on a release the gel
 springs back into the lifting indenter, and the full Newton steps, which see the contact only where it is at u, went
@@ -126,9 +127,9 @@ class NewtonSteps(FrictionLag):
         times): after a full step (alpha = 1) that step is estimated from the new gradient with the last Hessian
         (``LinearSolver.solve_last``: no assembly, no factorisation, refined to the tight tolerance only where its
         length is near the threshold it is compared with, ``_estimate_band``; not after a lag move made on an estimate,
-        where the step is seldom converged, nor where the force test holds, where it would decide nothing), otherwise it
-        is the full Newton step itself; the estimate also starts the
-        next system's solve on the host. The linear solver solves each system to the forcing tolerance
+        where the step is seldom converged, nor where the force test holds: there Newton has converged or the lag moves
+        whatever the estimate says), otherwise it is the full Newton step itself; the estimate also starts the next
+        system's solve on the host. The linear solver solves each system to the forcing tolerance
         (``FORCING_MAX``), and to its tight one where the step is within ``EXACT_BELOW`` newton_tol_mm. At convergence a
         penetration above ``penetration_tol_mm`` raises the contact stiffness (``_raise_stiffness``) and Newton goes on
         from there. The Armijo back-tracking line search on E (quadratic interpolation) never accepts a step that makes
