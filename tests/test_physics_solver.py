@@ -457,8 +457,8 @@ def test_force_test_ends_newton_once_the_force_left_is_small(linear_solver):
 
 @pytest.mark.parametrize("linear_solver", ["direct", "cg"])
 def test_no_step_estimate_where_the_force_test_holds(monkeypatch, linear_solver):
-    """Where the force test holds, Newton has converged (or moves friction's lag): a step estimate there would decide
-    nothing, and none is made (newton.py ``_newton``). With a step tolerance of 1e-12 mm only the force test can end
+    """Where the force test holds, Newton has converged (or moves friction's lag) whatever a step estimate would say,
+    and none is made (newton.py ``_newton``). With a step tolerance of 1e-12 mm only the force test can end
     this press; estimates are made at Newton's passes (each starts with the gradient) where it does not hold, and none
     at the pass that ends Newton."""
     from transtac_sim.physics.linear import LinearSolver

@@ -158,23 +158,18 @@ class NewtonSteps(FrictionLag):
             if lag_open and self._move_lag(ind, remaining, change):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                 continue
-            if remaining < tol and self._short_step_converges(g_norm):  # converged; the estimated step is taken too
-                # (below tol E changes by round-off)
-                energy_here = None
-                wp.copy(self._u_try.dof_values, self.u.dof_values)
-                fem.linalg.array_axpy(x=estimate, y=self._u_try.dof_values, alpha=1.0)
-                if self._min_det(self._u_try) > 0.0:
-                    wp.copy(self.u.dof_values, self._u_try.dof_values)
-                pen = self._raise_stiffness(ind, raises)
-                if pen is not None:
-                    return True, iterations, "", pen
-                raises, full_step, short_steps = raises + 1, False, 0
-                continue
-            if balanced:  # converged on the force left, once friction's lag is settled
-                if lag_open and self._move_lag(ind, 0.0):
+            # converged on the force left (no estimate was made) once friction's lag is settled, or on the estimated
+            # step, which is taken too (below tol E changes by round-off)
+            if balanced or (remaining < tol and self._short_step_converges(g_norm)):
+                if balanced and lag_open and self._move_lag(ind, 0.0):
                     lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                     continue
                 energy_here = None
+                if estimate is not None:
+                    wp.copy(self._u_try.dof_values, self.u.dof_values)
+                    fem.linalg.array_axpy(x=estimate, y=self._u_try.dof_values, alpha=1.0)
+                    if self._min_det(self._u_try) > 0.0:
+                        wp.copy(self.u.dof_values, self._u_try.dof_values)
                 pen = self._raise_stiffness(ind, raises)
                 if pen is not None:
                     return True, iterations, "", pen
