@@ -36,17 +36,15 @@ def _roller_block(w=4.0, t=2.0, n=2):
     return V, T, fixed
 
 
-@pytest.mark.parametrize("poisson", [0.3, 0.49])
-def test_uniform_compression_matches_neo_hookean(poisson):
+def _uniform_compression(poisson: float, settings: SolverSettings = SolverSettings()):
+    """The roller block compressed 0.1 mm by a plate: (the frame, the axial stretch reached, the displacement at 50
+    random points, stable Neo-Hookean's exact displacement there for that stretch, its normal force (N))."""
     V, T, fixed = _roller_block()
     mat = ElasticMaterial(0.5, poisson)
-    solver = QuasiStaticSolver(V, T, mat, [_plate()], fixed=fixed)
+    solver = QuasiStaticSolver(V, T, mat, [_plate()], settings, fixed=fixed)
     solver.start([_lift(2.0 + 1.0 + 1e-3)])
     res = solver.solve_frame([_lift(2.0 + 1.0 - 0.1)])
-    assert res.record.converged and res.record.min_det_f > 0
-
     s = 1.0 + res.displacement_mm[V[:, 2] > 2.0 - 1e-9, 2].mean() / 2.0  # axial stretch reached
-    assert 0.95 < s < 0.96  # 0.1 mm on 2 mm, less the penalty penetration
     lam = mat.lame_lambda + mat.mu
     alpha = 1.0 + mat.mu / lam
     l2 = (alpha - mat.mu / (lam * s)) / s  # free lateral stretch^2 of stable Neo-Hookean
@@ -56,11 +54,31 @@ def test_uniform_compression_matches_neo_hookean(poisson):
     bary = rng.dirichlet(np.ones(4), 50)
     X = np.einsum("kj,kjd->kd", bary, V[T[tet]])
     expected = X * np.array([lateral - 1.0, lateral - 1.0, s - 1.0])
-    got = solver.displacement_at(tet, bary)
-    np.testing.assert_allclose(got, expected, atol=1e-5 * 2.0)
     nominal = mat.mu * s + lam * (l2 * s - alpha) * l2  # first Piola-Kirchhoff P_zz (MPa)
-    np.testing.assert_allclose(res.forces_n[0, 2], nominal * 16.0, rtol=1e-3)
+    return res, s, solver.displacement_at(tet, bary), expected, nominal * 16.0
+
+
+@pytest.mark.parametrize("poisson", [0.3, 0.49])
+def test_uniform_compression_matches_neo_hookean(poisson):
+    res, s, got, expected, force = _uniform_compression(poisson)
+    assert res.record.converged and res.record.min_det_f > 0
+    assert 0.95 < s < 0.96  # 0.1 mm on 2 mm, less the penalty penetration
+    np.testing.assert_allclose(got, expected, atol=1e-5 * 2.0)
+    np.testing.assert_allclose(res.forces_n[0, 2], force, rtol=1e-3)
     assert abs(res.forces_n[0, 0]) < 1e-6 and abs(res.forces_n[0, 1]) < 1e-6
+
+
+def test_force_test_leaves_soft_directions_less_converged():
+    """Why ``SolverSettings`` keeps the step-length test alone by default while scenes take the force test at 3e-3
+    (config/scene.py): |gradient| <= 3e-3 of the load bounds the force left, not the displacement along soft
+    directions. In uniform compression at nu = 0.49 the force test leaves the lateral displacement about 1.5e-4 mm off
+    the exact one (1.5e-4 mm measured; the step-length test 1.2e-9 mm, within the 2e-5 mm above), the normal force still
+    within 1e-3."""
+    res, _, got, expected, force = _uniform_compression(0.49, SolverSettings(newton_force_rtol=3e-3))
+    assert res.record.converged and res.record.residual <= 3e-3 * abs(res.forces_n[0, 2])
+    error = np.abs(got - expected).max()
+    assert 2e-5 < error < 3e-4, error
+    np.testing.assert_allclose(res.forces_n[0, 2], force, rtol=1e-3)
 
 
 def test_indenter_starting_inside_gel_is_a_clear_error():

@@ -70,7 +70,8 @@ class SolverSettings:
     # support (at equilibrium the indenters' normal force) and friction's lag is settled, whatever the step's length
     # (newton.py ``_force_balanced``); None or 0: the step-length test alone, which solves to newton_tol_mm in every
     # direction (the force test leaves soft directions less converged: uniform compression at nu = 0.49 ends 1.5e-4 mm
-    # off the exact displacement with 3e-3, where the step-length test stays within the 2e-5 mm its test allows).
+    # off the exact displacement with 3e-3, against 1.2e-9 mm with the step-length test; tests/test_physics_solver.py
+    # ``test_force_test_leaves_soft_directions_less_converged``).
     # Scenes take 3e-3 unless they set it (config/scene.py, [physics] newton_force_rtol; BENCHMARKS.md
     # ``fem_force_test_default``)
     newton_force_rtol: float | None = None
