@@ -40,7 +40,9 @@ one after another can be compared for accuracy (``--compare-to`` an earlier run'
 marker difference per frame). ``--save-step-solutions FILE.npz`` keeps each converged load step's poses and solution,
 and ``--oracle-lag FILE.npz`` takes that solution as the step's friction lag from Newton's start, never moved
 (solver_variants.py ``oracle_lag``): the Newton iterations that no lag scheme could save (BENCHMARKS.md
-``fem_oracle_lag_gpu``).
+``fem_oracle_lag_gpu``); with ``--oracle-lag-part pressure|normal`` only that part of the first lag is the recorded
+solution's and the lag moves as by default, and the run prints how far the solver's own first lag's penetration is
+from the recorded one per load step (BENCHMARKS.md ``fem_lag_pressure_oracle``).
 """
 
 from __future__ import annotations
@@ -166,15 +168,19 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                                          "solution u (npz), for --oracle-lag"),
          oracle_lag: Path | None = typer.Option(None, help="an earlier --save-step-solutions file: each load step's "
                                                 "friction lag is that run's solution of the step, never moved"),
+         oracle_lag_part: str = typer.Option("both", help="with --oracle-lag: both (the lag never moved), pressure or "
+                                             "normal (only that part of the first lag is the recorded solution's, "
+                                             "the lag then moves as by default)"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
                           press_lag_move_ratio, contact_prediction)
     step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
+    pressure_errors: list[float] = []
     if oracle_lag:
         with np.load(oracle_lag) as kept:
-            solver_variants.oracle_lag(kept["poses"], kept["u"])
+            solver_variants.oracle_lag(kept["poses"], kept["u"], oracle_lag_part, pressure_errors)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
@@ -257,10 +263,14 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
           f"friction lag moves {physics.friction_lag_moves}, exact below "
           f"{newton.EXACT_BELOW:g} tol{', no exact Hessian' if clamped_only else ''}"
           f"{', no step estimate' if no_estimate else ''}{', Warp cg' if warp_cg else ''}"
-          f"{', the lag of ' + str(oracle_lag) if oracle_lag else ''}: "
+          f"{f', the lag of {oracle_lag} ({oracle_lag_part})' if oracle_lag else ''}: "
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
           f"({1000 * total / max(iterations, 1):.1f} ms per iteration); Newton iterations per frame, median over "
           f"all frames {statistics.median(frame_iterations):g}")
+    if pressure_errors:
+        print("the solver's own first friction lag per load step: its penetration max(g, 0) at the contact quadrature "
+              "points against the recorded solution's, relative L2 difference: "
+              + ", ".join(f"{e:.2f}" for e in pressure_errors))
     if gpu_activity:
         print_gpu_activity(activity, total)
         return

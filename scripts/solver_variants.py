@@ -8,6 +8,7 @@ import functools
 
 import numpy as np
 import typer
+import warp as wp
 
 from transtac_sim.physics import device_linear, newton, settings
 from transtac_sim.physics.newton import NewtonSteps
@@ -123,12 +124,27 @@ def keep_step_solutions() -> list[tuple[np.ndarray, np.ndarray]]:
     return kept
 
 
-def oracle_lag(poses: np.ndarray, solutions: np.ndarray) -> None:
+#: ``--oracle-lag-part``: which of friction's lagged quantities the recorded solution gives (``oracle_lag``)
+ORACLE_PARTS = ("both", "pressure", "normal")
+
+
+def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
+               pressure_errors: list[float] | None = None) -> None:
     """``--oracle-lag``: each load (sub)step's friction lag is that step's solution ``solutions[k]`` from an earlier run
     (``keep_step_solutions`` with a converged lag, e.g. 30 lag moves), set where Newton starts, and never moved. So the
     lag is the one Newton ends with from the first iteration: the Newton iterations left are what no lag scheme (timing,
     relaxation, prediction of the lag) could take away. The k-th (sub)step must go to ``poses[k]``: a run that sub-steps
-    where the earlier one did not (or the reverse) is refused at the first step that differs."""
+    where the earlier one did not (or the reverse) is refused at the first step that differs.
+
+    ``part`` (``--oracle-lag-part``): "both" as above; "pressure" or "normal": only friction's lagged penetration
+    (its normal pressure k g) or only its lagged normal (the tangent plane) is the recorded solution's, the other is the
+    solver's own first lag, u_lag stays the solver's own (its distance from u decides the lag moves as by default) and
+    the lag moves as by default: what the error of that one part of the first lag costs. ``pressure_errors``: where
+    given, each step appends the relative L2 difference, over the contact quadrature points, between the solver's own
+    first lag's penetration max(g, 0) and the recorded solution's (0 where neither touches, inf where only the
+    first lag does)."""
+    if part not in ORACLE_PARTS:
+        raise typer.BadParameter(f"--oracle-lag-part must be one of {', '.join(ORACLE_PARTS)}, got {part!r}")
     solve_step, newton_steps = NewtonSteps._solve_step, NewtonSteps._newton
     step_index: dict[int, int] = {}  # solver id -> index of its current (sub)step in the earlier run
 
@@ -141,14 +157,30 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray) -> None:
         return solve_step(self, poses_, prev_poses, may_stall)
 
     def from_oracle(self, ind, may_stall=False, *lifting):  # ``lifting``: this tree's Newton's, where given
+        st = self._contact_state
+        own_g, own_n, own_u = wp.clone(st.lag_g), wp.clone(st.lag_n), wp.clone(self.u_lag.dof_values)
         self.u_lag.dof_values.assign(solutions[step_index[id(self)]])
         self._update_lag(ind)
+        if pressure_errors is not None:
+            pressure_errors.append(_relative_difference(own_g.numpy(), st.lag_g.numpy()))
+        if part != "both":
+            wp.copy(st.lag_n, own_n) if part == "pressure" else wp.copy(st.lag_g, own_g)
+            wp.copy(self.u_lag.dof_values, own_u)
         return newton_steps(self, ind, may_stall, *lifting)
 
     NewtonSteps._solve_step, NewtonSteps._newton = matched_step, from_oracle
-    NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False
-    # the step estimate is then compared with newton_tol_mm alone (friction_lag.py ``_estimate_band``)
-    NewtonSteps._lag_change = lambda self: 0.0
+    if part == "both":
+        NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False
+        # the step estimate is then compared with newton_tol_mm alone (friction_lag.py ``_estimate_band``)
+        NewtonSteps._lag_change = lambda self: 0.0
+
+
+def _relative_difference(g: np.ndarray, reference: np.ndarray) -> float:
+    """|max(g, 0) - max(reference, 0)| / |max(reference, 0)| (L2 over the entries): 0 where both are 0, inf where
+    only ``g`` is not."""
+    a, b = np.maximum(g, 0.0), np.maximum(reference, 0.0)
+    scale = np.linalg.norm(b)
+    return float(np.linalg.norm(a - b) / scale) if scale > 0.0 else (0.0 if not a.any() else np.inf)
 
 
 def _band(text: str) -> tuple[float, float]:

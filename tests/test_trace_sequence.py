@@ -1,6 +1,6 @@
 """scripts/trace_sequence.py: --newton's count of each frame's Newton steps agrees with the solver's own record;
 --warm-start-distance measures the distances it prints; --curvature's directions have the curvature the Hessians'
-construction gives them (elasticity.py)."""
+construction gives them (elasticity.py); and the Newton variants of scripts/solver_variants.py do what they say."""
 
 import re
 import sys
@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import typer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import trace_sequence  # noqa: E402
@@ -192,14 +193,65 @@ def test_oracle_lag_starts_each_step_from_the_recorded_solution(monkeypatch):
         return result
 
     NewtonSteps._newton = spied
+    move_lag, lag_change = NewtonSteps._move_lag, NewtonSteps._lag_change
     solver_variants.oracle_lag(poses, solutions)
     oracle = run(3, 4)
     assert starts == [0.0, 0.0, 0.0] and ends == [0.0, 0.0, 0.0]  # set where Newton starts, never moved
     for a, b in zip(recorded, oracle, strict=True):
         assert np.abs(a.markers_gel_mm - b.markers_gel_mm).max() < 1e-3  # Newton's tolerance 1e-4 mm, lag within 1e-3
     NewtonSteps._solve_step, NewtonSteps._newton = solve_step, newton_steps
+    NewtonSteps._move_lag, NewtonSteps._lag_change = move_lag, lag_change
+    _one_part_of_the_lag_from_the_recorded_solution(solver_variants, run, recorded, poses, solutions)
     shifted = poses.copy()
     shifted[1, :, 2, 3] -= 0.01
     solver_variants.oracle_lag(shifted, solutions)
     with pytest.raises(RuntimeError, match="load step 1 of this run goes to other poses"):
         run(2, 4)
+
+
+def _one_part_of_the_lag_from_the_recorded_solution(solver_variants, run, recorded, poses, solutions):
+    """``--oracle-lag-part pressure|normal`` (BENCHMARKS.md ``fem_lag_pressure_oracle``): where Newton starts, that part
+    of friction's lag (the penetration lag_g or the normal lag_n) is the recorded solution's and the other is the
+    solver's own; u_lag stays the solver's own (the recorded solution only where the step starts there), the lag then
+    moves as by default, and the run ends at the recorded solution; each step's first-lag penetration error is
+    returned, 0 where it agrees with the recorded one."""
+    for part, recorded_name, own_name in (("pressure", "lag_g", "lag_n"), ("normal", "lag_n", "lag_g")):
+        seen, moves, errors, frames = _run_with_one_part(solver_variants, run, poses, solutions, part)
+        assert [s[recorded_name] for s in seen] == [True, True, True], part
+        # the solver's own first lag differs from the recorded one where the gel touches (frames 1-2), and it moves
+        assert [s[own_name] for s in seen[1:]] == [False, False], part
+        assert not any(s["u_lag"] for s in seen[1:]) and sum(moves) > 0, part
+        assert len(errors) == 3 and all(e > 0.05 for e in errors[1:]), (part, errors)
+        for a, b in zip(recorded, frames, strict=True):
+            assert np.abs(a.markers_gel_mm - b.markers_gel_mm).max() < 1e-3, part
+    with pytest.raises(typer.BadParameter, match="--oracle-lag-part must be one of"):
+        solver_variants.oracle_lag(poses, solutions, "tangent")
+
+
+def _run_with_one_part(solver_variants, run, poses, solutions, part):
+    """3 frames with ``oracle_lag(..., part)``: per step whether lag_g, lag_n and u_lag are the recorded solution's
+    where Newton starts, the frame's lag moves after each step, the first-lag penetration errors, and the frames."""
+    solve_step, newton_steps, update_lag = NewtonSteps._solve_step, NewtonSteps._newton, QuasiStaticSolver._update_lag
+    seen, moves, errors = [], [], []
+
+    def spied(self, ind, may_stall=False, lifting=False):
+        k = len(seen)
+        st = self._contact_state
+        kept = {name: getattr(st, name).numpy().copy() for name in ("lag_g", "lag_n")}
+        self._u_try.dof_values.assign(solutions[k])
+        update_lag(self, ind, self._u_try)  # the recorded solution's lag
+        seen.append({name: np.array_equal(kept[name], getattr(st, name).numpy()) for name in kept}
+                    | {"u_lag": np.array_equal(self.u_lag.dof_values.numpy(), solutions[k])})
+        st.lag_g.assign(kept["lag_g"])
+        st.lag_n.assign(kept["lag_n"])
+        result = newton_steps(self, ind, may_stall, lifting)
+        moves.append(self.stats["lag_updates"])
+        return result
+
+    NewtonSteps._newton = spied
+    solver_variants.oracle_lag(poses, solutions, part, errors)
+    try:
+        frames = run(3, 4)
+    finally:
+        NewtonSteps._solve_step, NewtonSteps._newton = solve_step, newton_steps
+    return seen, moves, errors, frames
