@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from mps_stand_in import stand_in
 from pycocotools.coco import COCO
 
 from transtac_sim.dataset import contract
@@ -105,18 +106,23 @@ def test_ray_backend_equals_local(reference: Path, tmp_path: Path):
     assert _snapshot(tmp_path / "ray") == _snapshot(reference)
 
 
-def test_ray_gpu_workers_equal_local(reference: Path, tmp_path: Path):
+def test_ray_gpu_workers_equal_local(reference: Path, tmp_path: Path, monkeypatch):
     """On a cluster with GPUs (here 2 logical ones on a CPU machine) sequences run on GPU-holding actors (2 per
-    GPU with 4 workers, ``ray_gpu_share``): both GPUs solve sequences, and the dataset is the same."""
+    GPU with 4 workers, ``ray_gpu_share``): both GPUs solve sequences, and the dataset is the same. ``mps`` with no
+    Ray address (a stand-in MPS control program here) starts the daemon around the run and stops it."""
     ray = pytest.importorskip("ray")
+    log = tmp_path / "mps.log"
+    stand_in(tmp_path / "bin", log)
+    monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}{os.pathsep}{os.environ['PATH']}")
     ray.shutdown()
     ray.init(num_cpus=2, num_gpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        report = generate(SCENE, tmp_path / "ray_gpus", frames=2, executor="ray", workers=4)
+        report = generate(SCENE, tmp_path / "ray_gpus", frames=2, executor="ray", workers=4, mps=True)
     finally:
         ray.shutdown()
     assert report.gpus_used == ["0", "1"]
     assert _snapshot(tmp_path / "ray_gpus") == _snapshot(reference)
+    assert log.read_text().splitlines() == ["start", "command quit"]
 
 
 def test_local_workers_equal_inline(reference: Path, tmp_path: Path):

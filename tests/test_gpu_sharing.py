@@ -7,27 +7,17 @@ import os
 from pathlib import Path
 
 import pytest
+from mps_stand_in import stand_in
 
 from transtac_sim.dataset.generate import generate
-from transtac_sim.gpu_sharing import CONTROL, MpsUnavailable, mps_server
+from transtac_sim.gpu_sharing import MpsUnavailable, mps_server
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _stand_in(bin_dir: Path, log: Path, start_output: str = "", start_exit: int = 0) -> None:
-    """A ``nvidia-cuda-mps-control`` that appends its arguments and standard input to ``log``."""
-    bin_dir.mkdir(exist_ok=True)
-    script = bin_dir / CONTROL
-    script.write_text(f"""#!/bin/sh
-if [ "$1" = "-d" ]; then echo "start" >> {log}; echo "{start_output}"; exit {start_exit}; fi
-while read -r line; do echo "command $line" >> {log}; done
-""")
-    script.chmod(0o755)
-
-
 def test_starts_the_daemon_and_stops_it(tmp_path: Path, monkeypatch):
     log = tmp_path / "calls.log"
-    _stand_in(tmp_path / "bin", log)
+    stand_in(tmp_path / "bin", log)
     monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}{os.pathsep}{os.environ['PATH']}")
     with mps_server() as ours:
         assert ours
@@ -37,7 +27,7 @@ def test_starts_the_daemon_and_stops_it(tmp_path: Path, monkeypatch):
 
 def test_a_running_daemon_is_used_and_left_running(tmp_path: Path, monkeypatch):
     log = tmp_path / "calls.log"
-    _stand_in(tmp_path / "bin", log, "An instance of this daemon is already running", 1)
+    stand_in(tmp_path / "bin", log, "An instance of this daemon is already running", 1)
     monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}{os.pathsep}{os.environ['PATH']}")
     with mps_server() as ours:
         assert not ours
@@ -45,7 +35,7 @@ def test_a_running_daemon_is_used_and_left_running(tmp_path: Path, monkeypatch):
 
 
 def test_a_daemon_that_fails_to_start_is_an_error(tmp_path: Path, monkeypatch):
-    _stand_in(tmp_path / "bin", tmp_path / "calls.log", "cannot create the pipe directory", 1)
+    stand_in(tmp_path / "bin", tmp_path / "calls.log", "cannot create the pipe directory", 1)
     monkeypatch.setenv("PATH", f"{tmp_path / 'bin'}{os.pathsep}{os.environ['PATH']}")
     with pytest.raises(MpsUnavailable, match="cannot create the pipe directory"):
         with mps_server():
@@ -60,6 +50,6 @@ def test_generate_without_mps_here_writes_nothing(tmp_path: Path, monkeypatch):
     with pytest.raises(MpsUnavailable, match="not on PATH"):
         generate(REPO / "scenes" / "quickstart.toml", out, frames=1, workers=2, mps=True)
     assert not out.exists()
-    with pytest.raises(MpsUnavailable, match="executor local"):
-        generate(REPO / "scenes" / "quickstart.toml", out, frames=1, executor="ray", mps=True)
+    with pytest.raises(MpsUnavailable, match="without --address"):
+        generate(REPO / "scenes" / "quickstart.toml", out, frames=1, executor="ray", address="auto", mps=True)
     assert not out.exists()

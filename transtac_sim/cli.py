@@ -148,8 +148,9 @@ def generate(scene: Path = SceneArg,
              address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)"),
              retry_failed: bool = typer.Option(False, help="on resume, solve again the sequences whose frame failed "
                                                            "in an earlier run (default: keep those failures)"),
-             mps: bool = typer.Option(False, help="run the local workers under CUDA MPS (started and stopped by this "
-                                                  "command), so that their GPU kernels run side by side")) -> None:
+             mps: bool = typer.Option(False, help="run the workers under CUDA MPS (started and stopped by this "
+                                                  "command; the local executor, or Ray without --address), so that "
+                                                  "their GPU kernels run side by side")) -> None:
     """Generate a labelled stereo dataset (DESIGN.md section 4); re-running resumes an interrupted run."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 

@@ -1,4 +1,4 @@
-"""CUDA MPS (Multi-Process Service) for several ``generate`` workers on one GPU.
+"""CUDA MPS (Multi-Process Service) for several ``generate`` workers on each GPU.
 
 Without MPS the CUDA contexts of several processes on one GPU are time-sliced: one process's kernels run at a time.
 Under MPS their kernels run side by side. The FEM's Newton iterations are many small launches that leave most of an
@@ -7,7 +7,8 @@ labelled frames per hour under MPS against 3,431 without (BENCHMARKS.md ``genera
 
 ``mps_server()`` starts NVIDIA's control daemon (``nvidia-cuda-mps-control -d``, part of the CUDA driver install)
 for the duration of a ``with`` block, as the current user, and stops it at the end; a daemon that was already
-running is used and left running. Processes started inside the block (the workers) connect to it by themselves.
+running is used and left running. Processes that make their CUDA context inside the block (the local executor's
+workers, the Ray actors of a local Ray instance) connect to it by themselves, through its default pipe directory.
 Nothing about the GPU's settings is changed (no exclusive-process compute mode).
 """
 
