@@ -142,8 +142,9 @@ def generate(scene: Path = SceneArg,
              seed: int = typer.Option(None, min=0, help="replace the scene's seed"),
              sequences: int = typer.Option(None, min=1, help="replace the scene's sequence count"),
              workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray tasks: with "
-                                                         "GPUs, workers / GPUs per GPU); on one H100 8 with --mps: "
-                                                         "6,115 frames per hour on train_random (BENCHMARKS.md)"),
+                                                         "GPUs, workers / GPUs per GPU); on train_random 8 with --mps "
+                                                         "gave 12,582 frames per hour on one H100, and 16 Ray "
+                                                         "workers under MPS 23,835 on two H200s (BENCHMARKS.md)"),
              executor: str = typer.Option("local", help="local | ray"),
              address: str = typer.Option(None, help="Ray cluster address (default: start a local Ray)"),
              retry_failed: bool = typer.Option(False, help="on resume, solve again the sequences whose frame failed "
