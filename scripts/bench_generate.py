@@ -45,8 +45,9 @@ REPO = Path(__file__).resolve().parents[1]
 def main(scene: Path = typer.Option(REPO / "scenes" / "train_random.toml"),
          sequences: int = typer.Option(2, min=1), frames: int = typer.Option(4, min=1),
          workers: int = typer.Option(1, min=1),
-         mps: bool = typer.Option(False, help="the workers share the GPU through CUDA MPS (generate --mps)"),
-         executor: str = typer.Option("local", help="local, or ray (on a machine with GPUs: one sequence per GPU)"),
+         mps: bool = typer.Option(False, help="the workers share each GPU through CUDA MPS (generate --mps)"),
+         executor: str = typer.Option("local", help="local, or ray (on a machine with GPUs: workers / GPUs "
+                                      "sequences per GPU)"),
          md_out: Path | None = typer.Option(None, help="also write the section's markdown to this file"),
          write: bool = typer.Option(True, help="update BENCHMARKS.md"),
          section: str = typer.Option("generate", help="BENCHMARKS.md section (one per machine kind)"),

@@ -178,6 +178,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                           press_lag_move_ratio, contact_prediction)
     step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
     pressure_errors: list[float] = []
+    if oracle_lag_part != "both" and not oracle_lag:
+        raise typer.BadParameter("--oracle-lag-part takes one part of a recorded lag: give --oracle-lag FILE too")
     if oracle_lag:
         with np.load(oracle_lag) as kept:
             solver_variants.oracle_lag(kept["poses"], kept["u"], oracle_lag_part, pressure_errors)

@@ -163,8 +163,11 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
         self._update_lag(ind)
         if pressure_errors is not None:
             pressure_errors.append(_relative_difference(own_g.numpy(), st.lag_g.numpy()))
+        if part == "pressure":
+            wp.copy(st.lag_n, own_n)
+        elif part == "normal":
+            wp.copy(st.lag_g, own_g)
         if part != "both":
-            wp.copy(st.lag_n, own_n) if part == "pressure" else wp.copy(st.lag_g, own_g)
             wp.copy(self.u_lag.dof_values, own_u)
         return newton_steps(self, ind, may_stall, *lifting)
 

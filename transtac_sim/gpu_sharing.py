@@ -8,7 +8,7 @@ labelled frames per hour under MPS against 3,431 without (BENCHMARKS.md ``genera
 ``mps_server()`` starts NVIDIA's control daemon (``nvidia-cuda-mps-control -d``, part of the CUDA driver install)
 for the duration of a ``with`` block, as the current user, and stops it at the end; a daemon that was already
 running is used and left running. Processes that make their CUDA context inside the block (the local executor's
-workers, the Ray actors of a local Ray instance) connect to it by themselves, through its default pipe directory.
+workers, Ray's actors on this machine) connect to it by themselves, through its default pipe directory.
 Nothing about the GPU's settings is changed (no exclusive-process compute mode).
 """
 

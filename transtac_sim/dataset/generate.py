@@ -126,14 +126,15 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
     """Generate (or resume) the dataset of ``scene_path`` in ``out``; ``on_frames(done, total)`` reports
     progress after each sequence. A resumed run keeps the failures an earlier run recorded (their sequences are
     not solved again) unless ``retry_failed``. ``mps``: the workers share each GPU through CUDA MPS
-    (gpu_sharing.py; raises ``MpsUnavailable`` where it cannot be started): the local executor's, or the Ray actors of
-    the local Ray instance this command starts (no ``address``; on two H200s, 16 workers under MPS gave 1.74x the
-    frames per hour of the local executor's 8 on one, BENCHMARKS.md ``generate_train_random_gpu_ray_two_gpus_mps``)."""
+    (gpu_sharing.py; raises ``MpsUnavailable`` where it cannot be started) on this machine: the local executor's, or
+    the Ray actors where no ``address`` is given (a Ray instance on this machine, which ``ray.init`` starts or finds;
+    on two H200s, 16 workers under MPS gave 1.74x the frames per hour of the local executor's 8 on one, BENCHMARKS.md
+    ``generate_train_random_gpu_ray_two_gpus_mps``)."""
     t0 = time.perf_counter()
     if mps and executor != "local" and address is not None:
         raise MpsUnavailable("--mps starts CUDA MPS on this machine only (the local executor, or Ray without "
-                             "--address): a Ray cluster's workers outlive this command, so start the MPS daemon "
-                             "(nvidia-cuda-mps-control -d) on its GPU nodes yourself")
+                             "--address): a Ray cluster's workers outlive this command, so drop --mps and start the "
+                             "MPS daemon (nvidia-cuda-mps-control -d) on its GPU nodes yourself, or drop --address")
     scene_path = Path(scene_path).resolve()
     scene = load_scene(scene_path)
     upd = {k: v for k, v in (("seed", seed), ("sequences", sequences)) if v is not None}
