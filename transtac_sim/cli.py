@@ -141,7 +141,7 @@ def generate(scene: Path = SceneArg,
              frames: int = typer.Option(None, min=1, help="frames per sequence (default: the whole trajectory)"),
              seed: int = typer.Option(None, min=0, help="replace the scene's seed"),
              sequences: int = typer.Option(None, min=1, help="replace the scene's sequence count"),
-             workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray tasks: with "
+             workers: int = typer.Option(1, min=1, help="parallel sequences (processes, or Ray tasks; with "
                                                          "GPUs, workers / GPUs per GPU); on train_random 8 with --mps "
                                                          "gave 12,582 frames per hour on one H100, and 16 Ray "
                                                          "workers under MPS 23,835 on two H200s (BENCHMARKS.md)"),

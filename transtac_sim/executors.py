@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import shutil
+import subprocess
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
@@ -21,17 +23,47 @@ def limit_threads(threads: int) -> None:
     cv2.setNumThreads(threads)
 
 
-def local_tasks(fn: Callable, tasks: list, workers: int, spawn: bool = False) -> Iterator:
+def visible_gpus() -> list[str]:
+    """The CUDA devices this process may use, as ``CUDA_VISIBLE_DEVICES`` names them: that variable's entries where it
+    is set, else one index per GPU that ``nvidia-smi -L`` lists; [] without an NVIDIA driver. Makes no CUDA context."""
+    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if listed is not None:
+        return [d.strip() for d in listed.split(",") if d.strip()]
+    smi = shutil.which("nvidia-smi")
+    if smi is None:
+        return []
+    try:
+        out = subprocess.run([smi, "-L"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [str(i) for i, line in enumerate(line for line in out.splitlines() if line.startswith("GPU "))]
+
+
+def _start_worker(threads: int, gpus: list[str], started) -> None:
+    """A local worker's start: its thread pools (``limit_threads``) and, with ``gpus``, the next of them in turn
+    (``started``: a shared count of the workers started) as its only CUDA device, set before any CUDA context is made."""
+    limit_threads(threads)
+    if gpus:
+        with started.get_lock():
+            index = started.value
+            started.value += 1
+        os.environ["CUDA_VISIBLE_DEVICES"] = gpus[index % len(gpus)]
+
+
+def local_tasks(fn: Callable, tasks: list, workers: int, spawn: bool = False,
+                gpus: list[str] | None = None) -> Iterator:
     """``fn(task)`` for each task, in order of completion: inline with one worker, else in ``workers`` processes
     (``spawn``: started fresh rather than forked, which a process holding a CUDA context needs) whose thread pools
-    share the cores (``limit_threads``)."""
+    share the cores (``limit_threads``). With ``gpus`` (``CUDA_VISIBLE_DEVICES`` names) the workers take them in turn,
+    one each, so that a machine's GPUs share the workers."""
     if workers <= 1:
         yield from map(fn, tasks)
         return
     threads = max(1, (os.cpu_count() or 1) // workers)
-    context = multiprocessing.get_context("spawn") if spawn else None
-    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=limit_threads,
-                             initargs=(threads,)) as pool:
+    context = multiprocessing.get_context("spawn") if spawn else multiprocessing.get_context()
+    started = context.Value("i", 0)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_start_worker,
+                             initargs=(threads, list(gpus or []), started)) as pool:
         for fut in as_completed([pool.submit(fn, t) for t in tasks]):
             yield fut.result()
 

@@ -20,7 +20,14 @@ from pathlib import Path
 from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset.coco import write_coco
 from transtac_sim.dataset.manifest import build_manifest, read_manifest, write_manifest
-from transtac_sim.executors import limit_threads, local_tasks, ray_node_threads, ray_tasks, start_ray
+from transtac_sim.executors import (
+    limit_threads,
+    local_tasks,
+    ray_node_threads,
+    ray_tasks,
+    start_ray,
+    visible_gpus,
+)
 from transtac_sim.gpu_sharing import MpsUnavailable, mps_server
 from transtac_sim.writer.atomic import write_json
 
@@ -55,9 +62,9 @@ def _run_task(task: SequenceTask) -> list[dict]:
 
 
 def _run_local(tasks: list[SequenceTask], workers: int) -> Iterator[list[dict]]:
-    # spawned, not forked: a forked CUDA context is unusable. Several workers on one GPU each open a context there,
-    # time-sliced unless they run under MPS (gpu_sharing.py)
-    return local_tasks(_run_task, tasks, workers, spawn=True)
+    # spawned, not forked: a forked CUDA context is unusable. The workers take the machine's GPUs in turn, one each;
+    # several workers on one GPU each open a context there, time-sliced unless they run under MPS (gpu_sharing.py)
+    return local_tasks(_run_task, tasks, workers, spawn=True, gpus=visible_gpus())
 
 
 def _run_ray(tasks: list[SequenceTask], address: str | None, workers: int, gpus_used: set[str]) -> Iterator[list[dict]]:
