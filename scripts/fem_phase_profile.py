@@ -177,12 +177,12 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
                           press_lag_move_ratio, contact_prediction)
     step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
-    pressure_errors: list[float] = []
+    penetration_errors: list[float] = []
     if oracle_lag_part != "both" and not oracle_lag:
         raise typer.BadParameter("--oracle-lag-part takes one part of a recorded lag: give --oracle-lag FILE too")
     if oracle_lag:
         with np.load(oracle_lag) as kept:
-            solver_variants.oracle_lag(kept["poses"], kept["u"], oracle_lag_part, pressure_errors)
+            solver_variants.oracle_lag(kept["poses"], kept["u"], oracle_lag_part, penetration_errors)
     if clamped_only:
         QuasiStaticSolver._hessian_ladder = lambda self: ((1.0, CLAMPED), (0.0, CLAMPED))
     if no_estimate:
@@ -269,10 +269,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
           f"{len(counted)} frame(s), {total:.2f} s, {iterations} Newton iterations "
           f"({1000 * total / max(iterations, 1):.1f} ms per iteration); Newton iterations per frame, median over "
           f"all frames {statistics.median(frame_iterations):g}")
-    if pressure_errors:
+    if penetration_errors:
         print("the solver's own first friction lag per load step: its penetration max(g, 0) at the contact quadrature "
               "points against the recorded solution's, relative L2 difference: "
-              + ", ".join(f"{e:.2f}" for e in pressure_errors))
+              + ", ".join(f"{e:.2f}" for e in penetration_errors))
     if gpu_activity:
         print_gpu_activity(activity, total)
         return

@@ -276,8 +276,8 @@ def main() -> None:
             same_as, r = done[case.key()]
         else:
             print(f"{case.name} ...", flush=True)
-            r = run_case(case, block, args.device, verbose=args.verbose, max_newton_iterations=args.max_newton_iterations,
-                         newton_force_rtol=args.newton_force_rtol)
+            r = run_case(case, block, args.device, verbose=args.verbose,
+                         max_newton_iterations=args.max_newton_iterations, newton_force_rtol=args.newton_force_rtol)
             done[case.key()] = (case.name, r)
         results.append(r)
         line = table_row(case.name, r, block.thickness, same_as)

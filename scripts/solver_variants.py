@@ -129,7 +129,7 @@ ORACLE_PARTS = ("both", "pressure", "normal")
 
 
 def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
-               pressure_errors: list[float] | None = None) -> None:
+               penetration_errors: list[float] | None = None) -> None:
     """``--oracle-lag``: each load (sub)step's friction lag is that step's solution ``solutions[k]`` from an earlier run
     (``keep_step_solutions`` with a converged lag, e.g. 30 lag moves), set where Newton starts, and never moved. So the
     lag is the one Newton ends with from the first iteration: the Newton iterations left are what no lag scheme (timing,
@@ -139,7 +139,7 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
     ``part`` (``--oracle-lag-part``): "both" as above; "pressure" or "normal": only friction's lagged penetration
     (its normal pressure k g) or only its lagged normal (the tangent plane) is the recorded solution's, the other is the
     solver's own first lag, u_lag stays the solver's own (its distance from u decides the lag moves as by default) and
-    the lag moves as by default: what the error of that one part of the first lag costs. ``pressure_errors``: where
+    the lag moves as by default: what the error of that one part of the first lag costs. ``penetration_errors``: where
     given, each step appends the relative L2 difference, over the contact quadrature points, between the solver's own
     first lag's penetration max(g, 0) and the recorded solution's (0 where neither touches, inf where only the
     first lag does)."""
@@ -161,8 +161,8 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
         own_g, own_n, own_u = wp.clone(st.lag_g), wp.clone(st.lag_n), wp.clone(self.u_lag.dof_values)
         self.u_lag.dof_values.assign(solutions[step_index[id(self)]])
         self._update_lag(ind)
-        if pressure_errors is not None:
-            pressure_errors.append(_relative_difference(own_g.numpy(), st.lag_g.numpy()))
+        if penetration_errors is not None:
+            penetration_errors.append(_relative_difference(own_g.numpy(), st.lag_g.numpy()))
         if part == "pressure":
             wp.copy(st.lag_n, own_n)
         elif part == "normal":

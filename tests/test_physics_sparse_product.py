@@ -250,8 +250,9 @@ def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch
     length = float(np.abs(loose.numpy()).max())  # below the band [refine_above, exact_below): the loose one is kept
     kept = linear.solve_last(wp.array(b, dtype=wp.vec3d, device=device), exact_below=1e9, refine_above=2.0 * length)
     assert linear.cg_tol < residual(kept) <= device_linear.ESTIMATE_RTOL
-    # the premise of friction_lag.ESTIMATE_REFINE_BAND (low, high): a loose length below low x newton_tol_mm refines to below
-    # newton_tol_mm and one above high x newton_tol_mm to above it (the convergence test decides as the refined would)
+    # the premise of friction_lag.ESTIMATE_REFINE_BAND (low, high): a loose length below low x newton_tol_mm refines to
+    # below newton_tol_mm and one above high x newton_tol_mm to above it (the convergence test decides as the refined
+    # would)
     low, high = friction_lag.ESTIMATE_REFINE_BAND
     assert 1.0 / high < float(np.abs(tight.numpy()).max()) / length < 1.0 / low
     monkeypatch.setattr(device_linear, "ESTIMATE_RTOL", 1e-12)  # not reachable within 2x the system's iterations
@@ -471,8 +472,8 @@ def test_direct_path_step_estimate_is_refined_only_within_its_band(monkeypatch):
 
 
 def test_step_estimate_band_is_about_the_threshold_it_is_compared_with():
-    """``_estimate_band`` (friction_lag.py): ``ESTIMATE_REFINE_BAND`` = (0.25, 2) x newton_tol_mm where friction's lag may not
-    move (no change given, or one below 10 newton_tol_mm); where it may, x the lag's threshold (``_move_lag``:
+    """``_estimate_band`` (friction_lag.py): ``ESTIMATE_REFINE_BAND`` = (0.25, 2) x newton_tol_mm where friction's lag
+    may not move (no change given, or one below 10 newton_tol_mm); where it may, x the lag's threshold (``_move_lag``:
     max(tol, r |u - u_lag|), r = 0.1 on the direct path), capped at ``ESTIMATE_REFINED_BELOW`` = 10 newton_tol_mm, and
     empty where the band lies above that."""
     assert friction_lag.ESTIMATE_REFINE_BAND == (0.25, 2.0) and friction_lag.ESTIMATE_REFINED_BELOW == 10.0

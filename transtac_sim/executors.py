@@ -41,7 +41,8 @@ def visible_gpus() -> list[str]:
 
 def _start_worker(threads: int, gpus: list[str], started) -> None:
     """A local worker's start: its thread pools (``limit_threads``) and, with ``gpus``, the next of them in turn
-    (``started``: a shared count of the workers started) as its only CUDA device, set before any CUDA context is made."""
+    (``started``: a shared count of the workers started) as its only CUDA device, set before any CUDA context is
+    made."""
     limit_threads(threads)
     if gpus:
         with started.get_lock():

@@ -22,10 +22,10 @@ failed frames or ended one with a residual of 33 N, and with the float64 retry e
 (BENCHMARKS.md ``fem_float64_fallback_gpu``). Where that is not solved either (CG stops at non-positive curvature or
 at ``cg_maxiter``), the system is shifted in place, H + lambda |diag(H)| (Levenberg-Marquardt, ``SHIFTS``: towards a
 scaled gradient step, always a descent direction), and solved again on the device; ``shifted_solves`` counts them
-and ``last_shift`` tells Newton that the step is not a Newton step. The device path never hands a system to the host: a host factorisation of a
-10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle), SuperLU did not finish
-within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100 (BENCHMARKS.md
-``fem_device_last_resort_gpu``). The last converged system's float32 matrix and
+and ``last_shift`` tells Newton that the step is not a Newton step. The device path never hands a system to the host:
+a host factorisation of a 10^5-dof P2 system takes seconds with CHOLMOD and, where CHOLMOD is missing (the GPU bundle),
+SuperLU did not finish within minutes, which is what stalled train_random sequences 9 and 17 in ``generate`` on an H100
+(BENCHMARKS.md ``fem_device_last_resort_gpu``). The last converged system's float32 matrix and
 preconditioner are kept for ``solve_last`` (in ``DeviceWork``, with the CG's arrays and graph). Warp's FSAI halves
 CG's iterations too, but its set-up (60 ms to 4 s on a 10^5-dof Newton system, H100) is made per system and costs
 more than it saves (scripts/bench_linear_solvers.py, BENCHMARKS.md ``linear_solvers_gpu``).
@@ -126,8 +126,8 @@ SHIFTS = (1.0e-2, 1.0, 1.0e2)
 COARSE_REFRESH_STEPS = 10
 
 #: the step estimate (``solve_last``; newton.py) is solved to this relative residual, and on to ``cg_tol`` only where its
-#: length is within the caller's [``refine_above``, ``exact_below``) (friction_lag.py ``_estimate_band``: about the threshold
-#: Newton compares it with, where the comparison could go either way); the first stage in at most
+#: length is within the caller's [``refine_above``, ``exact_below``) (friction_lag.py ``_estimate_band``: about the
+#: threshold Newton compares it with, where the comparison could go either way); the first stage in at most
 #: ``ESTIMATE_CAP_FACTOR`` times the last converged system's CG iterations. Before, it was solved to 1e-3 within 1x those
 #: iterations, which a system solved to Newton's loose forcing term did not reach: 58 of 103 estimates on the tiny
 #: mesh with press_slide's motion (this CPU, the device path) ran to that cap and were thrown away, 45 % of the CG

@@ -29,8 +29,8 @@ from transtac_sim.physics.host_factorisation import cholmod_module, factorise, p
 
 #: the direct path's step estimate (``solve_last``) is solved to this relative residual first, and on to the one asked
 #: for only where its length is within [``refine_above``, ``exact_below``) (where the caller's comparison with a
-#: threshold could go either way, friction_lag.py ``_estimate_band``): on the tiny press fixture (2-core CPU) 24 instead of
-#: 31 ms per estimate, the same Newton iterations and forces
+#: threshold could go either way, friction_lag.py ``_estimate_band``): on the tiny press fixture (2-core CPU) 24
+#: instead of 31 ms per estimate, the same Newton iterations and forces
 ESTIMATE_RTOL = 1.0e-2
 
 
@@ -198,8 +198,8 @@ class LinearSolver(DeviceSolves):
         device_linear.ESTIMATE_RTOL, then on to ``cg_tol``; ``rtol`` is the direct path's only). It goes on to the
         tighter tolerance only where the loose solution's max |x| is within [``refine_above``, ``exact_below``) mm:
         an early-stopped CG solution is mostly shorter than the exact one, and the caller compares its length with a
-        threshold (friction_lag.py ``_estimate_band``). A new array on the device with 0 on the fixed components, or None (no
-        system yet, or no convergence within the iterations allowed)."""
+        threshold (friction_lag.py ``_estimate_band``). A new array on the device with 0 on the fixed components, or
+        None (no system yet, or no convergence within the iterations allowed)."""
         if self.method == "cg":
             return self._solve_last_cg(rhs, exact_below, refine_above)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:
