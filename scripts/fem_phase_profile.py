@@ -29,7 +29,8 @@ iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unr
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
 ``--newton-force-rtol R`` sets the scene's ``[physics] newton_force_rtol`` (Newton's force test; 0: off; BENCHMARKS.md
-``fem_force_test_gpu``).
+``fem_force_test_gpu``). ``--contact-rings N`` sets physics/contact_sides.py ``CONTACT_RINGS_GPU`` (the rings of
+neighbours a new contact side subset takes on a GPU).
 ``--warm-start``, ``--exact-below``, ``--lag-move-ratio``, ``--press-lag-move-ratio``, ``--friction-lag-moves`` and
 ``--estimate-band`` are the Newton variants of scripts/solver_variants.py (BENCHMARKS.md ``fem_slide_iterations_gpu``,
 ``fem_estimate_refinement_gpu``, ``fem_press_lag_moves_gpu``).
@@ -62,7 +63,7 @@ import warp as wp
 from warp.optim.linear import aslinearoperator, cg
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import QuasiStaticSolver, definite_cg, device_linear, newton
+from transtac_sim.physics import QuasiStaticSolver, contact_sides, definite_cg, device_linear, newton
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
@@ -159,6 +160,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
          newton_force_rtol: float | None = typer.Option(None, min=0.0, max=0.1, help="replace the scene's [physics] "
                                                         "newton_force_rtol (Newton's force test; 0: off)"),
+         contact_rings: int = typer.Option(contact_sides.CONTACT_RINGS_GPU, min=1,
+                                           help="contact_sides.CONTACT_RINGS_GPU: rings of neighbours a new contact "
+                                           "side subset takes on a GPU"),
          coarse_refresh_steps: int = typer.Option(device_linear.COARSE_REFRESH_STEPS, min=1,
                                                   help="device_linear.COARSE_REFRESH_STEPS"),
          estimate_band: str | None = solver_variants.ESTIMATE_BAND_OPTION,
@@ -174,6 +178,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
+    contact_sides.CONTACT_RINGS_GPU = contact_rings
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
                           press_lag_move_ratio, contact_prediction)
     step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
@@ -343,7 +348,8 @@ def _warp_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=No
     """``definite_cg``'s interface on Warp's ``cg`` (which never reports an indefinite matrix; block-Jacobi only, no
     coarse level)."""
     iterations, err, tol = cg(A, b, x, tol=rtol, atol=atol, maxiter=maxiter, M=M, check_every=25)
-    return CgResult(float(err) <= float(tol), False, int(iterations), max_abs(x))
+    return CgResult(float(err) <= float(tol), False, int(iterations), max_abs(x),
+                    float(np.sum(x.numpy() * b.numpy())))
 
 
 def print_gpu_activity(results: list, wall_s: float) -> None:

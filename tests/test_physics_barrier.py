@@ -23,11 +23,13 @@ from transtac_sim.physics.host_factorisation import bsr_to_scipy
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import fem_stability as fs  # noqa: E402
 
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
-def _solver(settings: SolverSettings) -> QuasiStaticSolver:
+
+def _solver(settings: SolverSettings, device: str = "cpu") -> QuasiStaticSolver:
     V, T = box_tet_mesh(np.linspace(0, 2, 3), np.linspace(0, 2, 3), np.linspace(0, 1, 2))
     sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=2, radius=1.0))
-    return QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], settings)
+    return QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], settings, device=device)
 
 
 def _compressed(solver: QuasiStaticSolver, squeeze: float, seed: int = 0) -> np.ndarray:
@@ -43,13 +45,15 @@ def _far_away(solver):
     return solver._indenter_struct([P], [P])
 
 
-def test_energy_gradient_and_hessian_agree_where_the_barrier_acts():
+@pytest.mark.parametrize("device", DEVICES)
+def test_energy_gradient_and_hessian_agree_where_the_barrier_acts(device):
     """Central differences of E along a random direction match g . v, and of g match H v (the exact Hessian),
-    at a state whose det F is below the barrier's threshold at some check points."""
-    solver = _solver(SolverSettings())
+    at a state whose det F is below the barrier's threshold at some check points (on a GPU the barrier's gradient is
+    launched without reading its energy first, assembly.py ``_gradient``)."""
+    solver = _solver(SolverSettings(), device)
     ind = _far_away(solver)
     u0 = _compressed(solver, 0.08)
-    solver.u.dof_values.assign(wp.array(u0, dtype=wp.vec3d))
+    solver.u.dof_values.assign(wp.array(u0, dtype=wp.vec3d, device=device))
     g = solver._gradient(ind).numpy().copy()  # (on the CPU a view of the kept gradient, which the next call overwrites)
     assert solver._barrier_acts and float(solver._barrier_sum.numpy()[0]) > 0.0  # the barrier acts here
     H = bsr_to_scipy(solver._hessian(ind, geometric=1.0, clamp=False))
@@ -57,7 +61,7 @@ def test_energy_gradient_and_hessian_agree_where_the_barrier_acts():
     h = 1e-6
 
     def at(x):
-        solver.u.dof_values.assign(wp.array(x, dtype=wp.vec3d))
+        solver.u.dof_values.assign(wp.array(x, dtype=wp.vec3d, device=device))
         return solver._energy(solver.u, ind), solver._gradient(ind).numpy().copy()
 
     (e_plus, g_plus), (e_minus, g_minus) = at(u0 + h * v), at(u0 - h * v)
@@ -66,10 +70,13 @@ def test_energy_gradient_and_hessian_agree_where_the_barrier_acts():
                                atol=1e-5 * np.abs(H @ v.reshape(-1)).max())
 
 
-def test_barrier_is_inert_above_its_threshold():
-    on, off = _solver(SolverSettings()), _solver(SolverSettings(barrier_det_f=0.0))
+@pytest.mark.parametrize("device", DEVICES)
+def test_barrier_is_inert_above_its_threshold(device):
+    """Above the threshold the barrier adds nothing: E and g as without it (on a GPU its gradient is launched anyway and
+    returns 0 on the device, its energy being 0)."""
+    on, off = _solver(SolverSettings(), device), _solver(SolverSettings(barrier_det_f=0.0), device)
     for s in (on, off):
-        s.u.dof_values.assign(wp.array(_compressed(s, 0.8), dtype=wp.vec3d))
+        s.u.dof_values.assign(wp.array(_compressed(s, 0.8), dtype=wp.vec3d, device=device))
     ind_on, ind_off = _far_away(on), _far_away(off)
     on._gradient(ind_on)
     assert not on._barrier_acts and float(on._barrier_sum.numpy()[0]) == 0.0

@@ -42,6 +42,7 @@ def test_definite_cg_solves_a_positive_definite_system_to_its_tolerance(jacobi: 
     result = definite_cg(block_row_operator(H), wp.array(b, dtype=wp.vec3d), x, 1e-10, 3 * N, M)
     assert result.converged and not result.not_definite and 0 < result.iterations <= 3 * N
     assert result.x_max == np.abs(x.numpy()).max()
+    assert result.x_dot_b == pytest.approx(float(np.sum(x.numpy() * b)), rel=1e-12)
     residual = np.linalg.norm(A @ x.numpy().reshape(-1) - b.reshape(-1))
     assert residual <= 1e-10 * np.linalg.norm(b)
     np.testing.assert_allclose(x.numpy().reshape(-1), spla.spsolve(A.tocsc(), b.reshape(-1)), rtol=1e-7, atol=1e-9)

@@ -7,9 +7,12 @@ import warp as wp
 
 from transtac_sim.physics.reductions import (
     extremes,
+    launch_extremes,
     max_abs,
     negated_free,
     negated_free_and_load,
+    read_extremes,
+    reduction_buffer,
     step_summary,
 )
 
@@ -106,3 +109,23 @@ def test_a_buffer_too_small_for_the_partials_is_refused():
     with pytest.raises(ValueError, match="reduction_buffer"):
         launch_extremes(wp.array(np.ones(10), dtype=wp.float64, device="cpu"),
                         wp.empty(3, dtype=wp.float64, device="cpu"))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_callers_scalars_are_read_with_a_reduction(device):
+    """``negated_free_and_load``'s ``also`` and ``read_extremes``'s ``also``: values the caller copied next to the
+    results come back with them in the same read (newton.py: the barrier's energy and friction's lag distance with |g|;
+    assembly.py: E with the line search's det F), the results unchanged."""
+    rng = np.random.default_rng(8)
+    g = rng.standard_normal((N, 3))
+    fixed = (rng.random((N, 3)) < 0.3).astype(np.float64)
+    one, two = (wp.array(v, dtype=wp.float64, device=device) for v in ([2.5, 9.0], [-1.0, 4.0, 7.0]))
+    plain = negated_free_and_load(_vec(g, device), _vec(fixed, device))
+    rhs, norm, load, a, b, c = negated_free_and_load(_vec(g, device), _vec(fixed, device), ((one, 1), (two, 2)))
+    assert (norm, load) == plain[1:] and (a, b, c) == (2.5, -1.0, 4.0)
+    assert np.array_equal(rhs.numpy(), plain[0].numpy())
+    x = rng.standard_normal(N)
+    out = reduction_buffer(3, device)
+    launch_extremes(wp.array(x, dtype=wp.float64, device=device), out)
+    wp.copy(out, two, dest_offset=3, count=2)
+    assert read_extremes(out, also=2) == ((x.min(), x.max()), [-1.0, 4.0])

@@ -28,6 +28,7 @@ from transtac_sim.physics.box_mesh import gel_block
 from transtac_sim.physics.device_linear import SHIFTS, fixed_blocks, project_fixed
 from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
 from transtac_sim.physics.linear import LinearSolver
+from transtac_sim.physics.reductions import max_abs, step_summary
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
@@ -35,12 +36,13 @@ from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
 
-def _pressed_solver(degree: int = 2, device: str = "cpu"):
-    """A sphere pressed 0.3 mm into a small P2 (or P1) block (friction 0.5) on ``device``, and its indenter struct, with
-    the contact state of the solution stored."""
+def _pressed_solver(degree: int = 2, device: str = "cpu", linear_solver: str = "auto", friction: float = 0.5):
+    """A sphere pressed 0.3 mm into a small P2 (or P1) block (friction 0.5 by default) on ``device``, and its indenter
+    struct, with the contact state of the solution stored."""
     V, T = gel_block(6.0, 6.0, 2.0, h_fine=0.6, fine_half_width=1.2, growth=2.0)
-    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), 0.5)
-    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere], SolverSettings(degree=degree), device=device)
+    sphere = RigidIndenter.from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3, radius=2.0), friction)
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [sphere],
+                               SolverSettings(degree=degree, linear_solver=linear_solver), device=device)
     P = np.eye(4)
     P[2, 3] = 4.0 + 1e-3
     solver.start([P])
@@ -221,6 +223,45 @@ def test_device_last_resort_tries_the_float64_product_before_a_shift(monkeypatch
     expected = spla.spsolve(A.tocsc(), -g.reshape(-1)[linear._free])
     np.testing.assert_allclose(du.numpy().reshape(-1)[linear._free], expected, rtol=0,
                                atol=1e-7 * np.abs(expected).max())
+
+
+@pytest.mark.skipif("cuda:0" not in DEVICES, reason="the GPU's Newton path (reads folded into one) needs a GPU")
+def test_gpu_newton_with_the_device_cg_ends_where_the_host_factorisation_does():
+    """The sphere pressed 0.3 mm without friction (``_pressed_solver``; with it the two would follow friction's lag by
+    different paths), then 0.05 mm more, on a GPU, whose Newton folds its scalars into one read per pass (the barrier's
+    energy, the contact sides' coverage and E with |g|; with the device CG the step's slope and length come from the
+    CG's state): with the device CG it ends where it does with the host factorisation, whose steps are exact (the same
+    displacement within 2e-4 mm, the same contact force within 0.1 %). (The GPU machine builds no CPU kernels, so the
+    CPU path is not the reference here.)"""
+    cg, _ = _pressed_solver(device="cuda:0", friction=0.0)
+    host, _ = _pressed_solver(device="cuda:0", linear_solver="direct", friction=0.0)
+    P = cg.poses[0].copy()
+    P[2, 3] -= 0.05  # a second frame, from each one's own first one
+    r_cg, r_host = cg.solve_frame([P]), host.solve_frame([P])
+    assert r_cg.record.converged and r_host.record.converged
+    assert np.abs(r_cg.displacement_mm - r_host.displacement_mm).max() <= 2e-4  # mm, of about 0.35 mm
+    assert np.abs(r_cg.forces_n - r_host.forces_n).max() <= 1e-3 * np.abs(r_host.forces_n).max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_device_solutions_come_with_their_summary(device):
+    """The device path's solution of a Newton system and its step estimate come with (x . b, max |x|, finite) read with
+    the CG's state (``LinearSolver.known_summary``), equal to what reductions.py reduces from them; another array, and
+    the host path, have none (the caller reduces)."""
+    solver, ind = _pressed_solver(device=device)
+    linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
+    g[solver._fixed_nodes] = 0.0
+    rhs = wp.array(-g, dtype=wp.vec3d, device=device)
+    du = linear.solve(solver._hessian(ind, 1.0, True), rhs, rtol=0.01)
+    dot, largest, finite = linear.known_summary(du)
+    expected = step_summary(du, rhs)
+    assert finite and expected[2] and dot == pytest.approx(expected[0], rel=1e-12) and largest == expected[1] > 0.0
+    estimate = linear.solve_last(wp.array(0.5 * -g, dtype=wp.vec3d, device=device))
+    assert linear.known_summary(estimate)[1] == max_abs(estimate) > 0.0 and linear.known_summary(du) is None
+    assert linear.known_summary(wp.clone(estimate)) is None
+    host = LinearSolver("direct", solver._fixed_nodes, solver.device)
+    assert host.known_summary(host.solve(solver._hessian(ind, 1.0, True), rhs)) is None
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -568,6 +609,36 @@ def test_contact_hessian_over_its_sides_equals_the_full_assembly():
                                                              "points": subset.points}, output_dtype=wp.float64)
     expected = bsr_to_scipy(full)
     assert expected.nnz > 0 and abs(subset_hessian - expected).max() <= 1e-13 * abs(expected).max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_contact_side_coverage_is_tested_on_the_device(device, monkeypatch):
+    """``ContactSides.launch_coverage`` (the GPU's test, read with the gradient's norm): 0 while the subset holds every
+    stiff side's neighbours (where ``update`` keeps it), 1 where a stiff point lies on a side with a neighbour outside
+    it. With the flag read as 0, ``_contact_subset`` keeps the subset without reading the contact state; a subset of two
+    rings holds the one-ring one."""
+    solver, ind = _pressed_solver(device=device)
+    solver._hessian(ind, 1.0)  # the subset, from the stored contact state
+    sides, st = solver._contact_sides, solver._contact_state
+    sides.launch_coverage(st.k_normal, st.k_slip, st.k_slip_dir, ind.count)
+    assert sides.stale.numpy()[0] == 0.0
+    mask, points = sides.current.mask.copy(), sides.current.points
+    edge = [s for s in np.flatnonzero(mask) if not mask[sides._neighbours[s].indices].all()][0]
+    for side, stale in ((np.flatnonzero(~mask)[-1], 1.0), (edge, 1.0), (np.flatnonzero(st.k_normal.numpy())[0] //
+                                                                         (points * ind.count), 0.0)):
+        k = st.k_normal.numpy().copy()
+        k[side * points * ind.count] = 1.0  # a stiff point on that side
+        sides.launch_coverage(wp.array(k, dtype=wp.float64, device=device), st.k_slip, st.k_slip_dir, ind.count)
+        assert sides.stale.numpy()[0] == stale
+    monkeypatch.setattr(sides, "update", lambda stiff: pytest.fail("the contact state was read"))
+    solver.contact_stale_read(0.0)
+    assert solver._contact_subset(ind) is sides.current
+    monkeypatch.undo()
+    made = []
+    for rings in (1, 2):  # each made afresh from the stored contact state
+        sides._rings, sides.current, solver._contact_stale = rings, None, None
+        made.append(solver._contact_subset(ind).mask)
+    assert made[1][made[0]].all() and made[1].sum() > made[0].sum()
 
 
 def test_contact_sides_are_kept_until_contact_reaches_beyond_them():

@@ -9,12 +9,16 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   warp.fem's mapped construction, values only after the first assembly), and added into one kept matrix with the
   deviatoric part's sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point
   per tet) is added to it tet by tet (volumetric_hessian.py);
-- the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0);
+- the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0; on a GPU
+  the gradient's integrand returns 0 on the device, so that the energy need not be read first);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the
   largest penetration and max |u - u_lag| for friction's lag test are reduced there (reductions.py), and so are the
   contact Hessian's stiff points (with the
   fixed dofs' projection on the blocks it changes only, device_linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster
-  in three of four runs, then 0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``);
+  in three of four runs, then 0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``); on a GPU Newton reads
+  the barrier's energy, the contact side subset's coverage and E with the gradient's norm (``barrier_energy_read``,
+  ``contact_stale_read``, newton.py ``_read_gradient``), and the line search E with det F, in one read each
+  (BENCHMARKS.md ``fem_folded_reads_gpu``);
 - contact is integrated over the boundary sides an indenter can touch (solver.py ``_touchable_sides``), its Hessian
   only over those where it can be non-zero (contact_sides.py).
 """
@@ -150,14 +154,18 @@ class Assembly:
         self._graphs.run(key, (u, ind), lambda: self._energy_terms(u, ind))
 
     def _energy_and_min_det(self, u, ind) -> tuple[float, float | None]:
-        """(E(u), the smallest det F at u) for the line search's trial u: on a GPU both are launched before either is
-        read, so that the host waits once (most trials are taken, and the det F then decides); on the CPU, where a
-        read costs no wait, the det F is None (``_min_det`` where it is needed)."""
+        """(E(u), the smallest det F at u) for the line search's trial u: on a GPU both are launched and read together
+        (E copied next to the det F's extremes, one read), so that the host waits once (most trials are taken, and the
+        det F then decides); on the CPU, where a read costs no wait, the det F is None (``_min_det`` where it is
+        needed)."""
         if not self.device.is_cuda:
             return self._energy(u, ind), None
         self._launch_energy(u, ind)
         self._launch_min_det(u)
-        return float(self._energy_sum.numpy()[0]), read_extremes(self._det_work[1])[0]
+        out = self._det_work[1]
+        wp.copy(out, self._energy_sum, dest_offset=3, count=1)  # over a partial that the combine has used
+        (low, _), energy = read_extremes(out, also=1)
+        return energy[0], low
 
     def _energy_terms(self, u, ind) -> None:
         """E(u)'s terms summed into ``self._energy_sum`` (launches only)."""
@@ -178,22 +186,45 @@ class Assembly:
 
     def _gradient(self, ind) -> wp.array:
         """Gradient at self.u (N, vec3d per node), written into the kept ``self._g`` (the next call overwrites it);
-        also stores there the contact state and whether the barrier acts, which ``_hessian`` uses. The terms are added
-        in the order of the energy (elastic, barrier, contact). On a GPU the launches are replayed as CUDA graphs
-        (replay.py): the elastic terms with the barrier's energy summed alongside, then (where that energy, read by the
-        host, is not 0: the usual case) the barrier's gradient, then the contact state and gradient."""
+        also stores there the contact state and the barrier's energy, which ``_hessian`` uses (``_barrier_acts``). The
+        terms are added in the order of the energy (elastic, barrier, contact). On a GPU the launches are replayed as
+        CUDA graphs (replay.py): the elastic terms with the barrier's energy summed alongside, the barrier's gradient
+        (0 at once where that energy is 0, on the device), then the contact state and gradient; nothing is read (the
+        caller may read the barrier's energy with its own read, ``barrier_energy_read``). On the CPU, where a read
+        costs no wait, the energy is read first and the barrier's gradient launched only where it is not 0 (the usual
+        case)."""
         u = self.u
         self._graphs.run(("elastic_gradient", u.dof_values.ptr), (u,), self._elastic_gradient_terms)
-        # False where every det F is above the barrier's threshold (its energy, gradient and Hessian are then 0)
-        self._barrier_acts = self.settings.barrier_det_f > 0.0 and float(self._barrier_sum.numpy()[0]) > 0.0
-        if self._barrier_acts:
+        self._barrier_energy = None
+        if self.settings.barrier_det_f > 0.0 and (self.device.is_cuda or self._barrier_acts):
             self._graphs.run(("barrier_gradient", u.dof_values.ptr), (u,), lambda: fem.integrate(
                 elasticity.barrier_gradient_form, quadrature=self._q_det, fields={"u": u, "v": self._test},
-                values=self._barrier_values(), output=self._g, add=True))
+                values=self._barrier_values() | {"energy": self._barrier_sum}, output=self._g, add=True))
+        self._contact_stale = None
         if ind.count:
             self._graphs.run(("contact_gradient", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind),
                              lambda: self._contact_gradient_terms(ind))
         return self._g
+
+    @property
+    def _barrier_acts(self) -> bool:
+        """Whether some det F is below the barrier's threshold at the last ``_gradient``'s u (its energy is not 0;
+        otherwise its gradient and Hessian are 0): the energy read now unless the caller has read it with its own
+        read since (``barrier_energy_read``)."""
+        if self._barrier_energy is None:
+            self._barrier_energy = float(self._barrier_sum.numpy()[0])
+        return self.settings.barrier_det_f > 0.0 and self._barrier_energy > 0.0
+
+    def barrier_energy_read(self, energy: float) -> None:
+        """The barrier's energy at the last ``_gradient``'s u (N mm), read by the caller with its own read (newton.py:
+        with the gradient's norm), so that ``_barrier_acts`` reads nothing."""
+        self._barrier_energy = energy
+
+    def contact_stale_read(self, flag: float) -> None:
+        """The contact side subset's coverage flag (contact_sides.py ``launch_coverage``) at the last ``_gradient``'s
+        u, read by the caller with its own read: 0 lets ``_contact_subset`` keep the subset without reading the contact
+        state. Only on a GPU, where ``_gradient`` launches it."""
+        self._contact_stale = flag > 0.0
 
     def _elastic_gradient_terms(self) -> None:
         """The deviatoric and volumetric gradient into ``self._g``, the barrier's energy into ``self._barrier_sum``
@@ -213,6 +244,9 @@ class Assembly:
                         values=self._contact_values(ind))
         fem.integrate(contact.contact_gradient_form, quadrature=self._q_contact, fields={"v": self._side_test},
                       values={"st": self._contact_state}, output=self._g, add=True)
+        if self.device.is_cuda:  # whether the contact Hessian's side subset still holds, for the caller's read
+            st = self._contact_state
+            self._contact_sides.launch_coverage(st.k_normal, st.k_slip, st.k_slip_dir, ind.count)
 
     def _hessian(self, ind, geometric: float, clamp: int = elasticity.CLAMPED) -> BsrMatrix:
         """The Hessian at self.u, where the last ``_gradient`` was evaluated (whose contact state and barrier flag it
@@ -267,17 +301,23 @@ class Assembly:
     def _contact_subset(self, ind):
         """The contact sides the Hessian is integrated over (contact_sides.py: those with a normal or friction
         stiffness in the contact state of the last ``_gradient``, and their neighbours), or None where there are none;
-        where the subset is made anew, its matrix and places in the sum are dropped (made again on first use)."""
+        where the subset is made anew, its matrix and places in the sum are dropped (made again on first use). On a GPU,
+        where the caller has read ``_gradient``'s coverage flag (``contact_stale_read``: the subset still holds), the
+        kept subset with no read of its own."""
+        sides = self._contact_sides
+        if sides.current is not None and self._contact_stale is False:
+            return None if sides.current.quadrature is None else sides.current
         st = self._contact_state
         points = self._q_contact.total_point_count()
         stiff = self._stiff_work
         wp.launch(_stiff_points, dim=points, device=self.device,
                   inputs=[st.k_normal, st.k_slip, st.k_slip_dir, ind.count, stiff])
-        if self._contact_sides.update(stiff.numpy().astype(bool)):
+        if sides.update(stiff.numpy().astype(bool)):
             self._H_parts.pop("contact", None)
             self._H_slots.pop("contact", None)
             self._graphs.clear("hessian")  # they integrate over the old subset, into its matrix
-        subset = self._contact_sides.current
+        self._contact_stale = False
+        subset = sides.current
         return None if subset.quadrature is None else subset  # None: nothing touches
 
     def _assemble(self, name: str, form, quadrature, fields: dict, values: dict) -> BsrMatrix:

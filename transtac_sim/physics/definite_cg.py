@@ -24,8 +24,8 @@ graphs one iteration is captured and launched ``CHECK_EVERY`` times between host
 launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
 entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
 the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
-whether it is still going, iteration cap, and at the end max |x| and its NaN count) is one small float64 array, so
-the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop
+whether it is still going, iteration cap, and at the end max |x|, its NaN count and x . b) is one small float64 array,
+so the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop
 therefore runs ``UNROLL`` iterations, and a solve pays for at most UNROLL - 1 iterations after its stop: on
 press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
 (BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums
@@ -57,9 +57,10 @@ UNROLL = 4  # iterations per pass of the conditional graph's loop (CUDA)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
 
-# the state array's slots (X_MAX, X_NANS: max |x| over entries and components at the end, and the entries with a NaN)
-RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE, MAXITER, X_MAX, X_NANS = (wp.constant(k) for k in range(11))
-STATE_SIZE = 11
+# the state array's slots (X_MAX, X_NANS: max |x| over entries and components at the end, and the entries with a NaN;
+# XB: x . b at the end)
+RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE, MAXITER, X_MAX, X_NANS, XB = (wp.constant(k) for k in range(12))
+STATE_SIZE = 12
 # why it stopped (the STOP slot)
 _STOPS = (1.0, 2.0, 3.0, 4.0)
 CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in _STOPS)
@@ -71,6 +72,7 @@ class CgResult:
     not_definite: bool  # stopped at p . A p <= 0 (or r . M r <= 0): the matrix (or M) is not positive definite
     iterations: int
     x_max: float  # max |x| over its entries and components at the end (NaN where an entry is NaN)
+    x_dot_b: float  # x . b at the end (Newton's slope along its step, with b = -g: newton.py)
 
 
 @wp.kernel(enable_backward=False)
@@ -304,9 +306,10 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         for _ in range(UNROLL):
             iteration()
 
-    def finish():  # max |x| and its NaN count into the state, read with it
+    def finish():  # max |x|, its NaN count and x . b into the state, read with it
         launch_max_abs(x, ws.x_max_work)
         wp.copy(state, ws.x_max_work, dest_offset=X_MAX, count=2)
+        add_dot(x, ws.b, state, XB)
 
     wp.copy(ws.b, b)
     wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])
@@ -348,4 +351,4 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     s = state.numpy()
     converged, not_definite, not_definite_m, _ = _STOPS
     return CgResult(bool(s[STOP] == converged), bool(s[STOP] in (not_definite, not_definite_m)), int(s[ITER]),
-                    float("nan") if s[X_NANS] else float(s[X_MAX]))
+                    float("nan") if s[X_NANS] else float(s[X_MAX]), float(s[XB]))

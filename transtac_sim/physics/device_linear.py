@@ -188,7 +188,7 @@ class DeviceSolves:
         converged, iterations = self._cg(A, M, rhs, x, ESTIMATE_RTOL, cap, exact_below, refine_above)
         self.estimate_iterations += iterations
         self.estimates_unconverged += not converged
-        return wp.clone(x) if converged else None  # the kept x is the next solve's
+        return self._known_solution(x) if converged else None  # a copy: the kept x is the next solve's
 
     def _device_work(self) -> DeviceWork:
         """The device path's arrays kept between solves (made on first use)."""
@@ -221,7 +221,16 @@ class DeviceSolves:
             result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
             total += result.iterations
         self.not_definite += result.not_definite
+        self._last_result = result
         return result.converged, total
+
+    def _known_solution(self, x: wp.array) -> wp.array:
+        """A copy of the last CG's solution ``x``, whose (x . b, max |x|, finite) the CG read with its state: kept for
+        ``known_summary``."""
+        out = wp.clone(x)
+        r = self._last_result
+        self._known = (out, (r.x_dot_b, r.x_max, bool(np.isfinite(r.x_max) and np.isfinite(r.x_dot_b))))
+        return out
 
     def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
                   coarse_from_this: bool = True, single_precision: bool = True) -> wp.array | None:
@@ -252,4 +261,4 @@ class DeviceSolves:
             self._coarse_tried = True
             if work.coarse.update(H):
                 self._steps_since_coarse = 0
-        return wp.clone(work.x)  # the kept x is the next solve's
+        return self._known_solution(work.x)  # a copy: the kept x is the next solve's

@@ -152,7 +152,11 @@ def barrier_energy_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.v
 
 @fem.integrand
 def barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp.array(dtype=wp.vec2d),
-                          stiffness: wp.float64, j_hat: wp.float64):
+                          stiffness: wp.float64, j_hat: wp.float64, energy: wp.array(dtype=wp.float64)):
+    """The barrier's gradient; 0 at once where its ``energy`` (summed before, on the device) is 0: every det F is
+    above j_hat, so that a GPU launches it without reading the energy first (assembly.py ``_gradient``)."""
+    if energy[0] == _f(0.0):
+        return _f(0.0)
     F = deformation_gradient(fem.grad(u, s))
     db = det_barrier(wp.determinant(F), j_hat)[1]
     return stiffness * params[s.element_index][0] * db * wp.ddot(cofactor(F), fem.grad(v, s))

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from transtac_sim.physics.reductions import max_abs
+from transtac_sim.physics.reductions import launch_max_abs, max_abs
 
 #: friction's lag is moved once Newton's estimated remaining step is below this fraction of |u - u_lag| (``_move_lag``),
 #: per linear solver: moved earlier (0.3, 1.0; with a second Hessian since removed) the press_slide frames took more
@@ -50,6 +50,12 @@ class FrictionLag:
     def _lag_change(self) -> float:
         """max |u - u_lag| (mm): how far friction's lag is from the current u."""
         return max_abs(self.u.dof_values, self.u_lag.dof_values)
+
+    def _launch_lag_change(self) -> wp.array:
+        """``_lag_change`` without its read: [max |u - u_lag| over the entries without a NaN, count of entries with a
+        NaN] into a kept buffer (reductions.py ``launch_max_abs``), returned for the caller's read."""
+        launch_max_abs(self.u.dof_values, self._lag_work, self.u_lag.dof_values)
+        return self._lag_work
 
     def _lag_threshold(self, change: float) -> float | None:
         """The remaining step (mm) below which friction's lag moves for a lag ``change`` (mm) away (``_move_lag``), or

@@ -78,6 +78,9 @@ class LinearSolver(DeviceSolves):
         self._converged_iterations = 0  # CG iterations of the last converged device solve
         self._last_cg: tuple | None = None  # the last converged device system's (operator, preconditioner)
         self._work: DeviceWork | None = None  # the device path's kept arrays (``_device_work``)
+        self._last_result = None  # the device path's last CG result (definite_cg.py ``CgResult``)
+        # (the last solution returned on the device path, its (x . b, max |x|, finite) read with the CG's state)
+        self._known: tuple | None = None
         self._fixed_blocks: tuple | None = None  # (sparsity key, blocks, rows) of ``fixed_blocks`` for the last matrix
 
     def new_load_step(self) -> None:
@@ -213,6 +216,13 @@ class LinearSolver(DeviceSolves):
         out = np.zeros(3 * self._node_count)
         out[self._free] = x
         return wp.array(out.reshape(-1, 3), dtype=wp.vec3d, device=self.device)
+
+    def known_summary(self, x: wp.array) -> tuple[float, float, bool] | None:
+        """(x . b, max |x|, whether both are finite) for ``x``, the last solution this solver returned (``solve`` or
+        ``solve_last``, b its right-hand side), where the device CG read them with its state; None otherwise (the host
+        path, or another array): the caller reduces them itself (reductions.py ``step_summary``, ``max_abs``). Saves
+        Newton a read per step and per step estimate."""
+        return self._known[1] if self._known is not None and self._known[0] is x else None
 
     def forget(self) -> None:
         """The next ``solve_last`` returns None until a new system is solved (e.g. the energy has changed)."""

@@ -69,6 +69,13 @@ into the indenter and were cut back by the line search (press_slide's release fr
 steps that lift an indenter, a refused full step is now solved again with the contact it predicts (a primal-dual active
 set step on the penalty term): the release frame takes 12-13, press_slide's median per frame falls from 15.5 to 12.5-13,
 and its time per frame is unchanged within the runs' spread on an H100.
+
+Issue 12, eighth pass (BENCHMARKS.md ``fem_folded_reads_gpu``): the GPU was busy for 62 % of press_slide's frames, the
+host reading a device scalar 13 times per Newton iteration, each read draining the GPU. A pass now reads the gradient's
+norm with the barrier's energy, friction's lag distance and, on a GPU, the contact side subset's coverage and E where
+the line search needs it (``_read_gradient``); a device step's slope and length, and a step estimate's length, come
+with the CG's state (``LinearSolver.known_summary``): 6.4 reads per Newton iteration, frames 0.74-0.87x the time on an
+H100 (about 0.13-0.16 s), the same Newton iterations.
 """
 
 from __future__ import annotations
@@ -143,18 +150,20 @@ class NewtonSteps(FrictionLag):
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
         while True:
-            # -g and |g| on the free components, and the normal load on the support
-            rhs, g_norm, load = negated_free_and_load(self._gradient(ind), self._fixed_mask)
+            lag_open = friction and lags < s.friction_lag_moves
+            rhs, g_norm, load, lag_change, energy_at_u = self._read_gradient(ind, full_step and lag_open,
+                                                                             energy_here is None)
+            energy_here = energy_here if energy_at_u is None else energy_at_u
             if g_norm == 0.0:  # e.g. nothing touches yet: already at equilibrium
                 return True, iterations, "", 0.0
             g_first = g_first or g_norm
-            lag_open = friction and lags < s.friction_lag_moves
             # where the force test holds, Newton has converged or friction's lag moves whatever a step estimate says
             balanced = self._force_balanced(g_norm, load)
-            change = self._lag_change() if full_step and lag_open and not balanced else None
+            change = lag_change if not balanced else None
             estimate = self._linear.solve_last(rhs, **self._estimate_band(change)) if full_step and not balanced \
                 else None
-            remaining = max_abs(estimate) if estimate is not None else np.inf
+            known = self._linear.known_summary(estimate) if estimate is not None else None
+            remaining = np.inf if estimate is None else known[1] if known else max_abs(estimate)
             if lag_open and self._move_lag(ind, remaining, change):
                 lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
                 continue
@@ -194,7 +203,7 @@ class NewtonSteps(FrictionLag):
                 if du is None:  # this Hessian is not positive definite here
                     self.stats["indefinite_hessians"] += 1
                     continue
-                du_dot_rhs, step_max, finite = step_summary(du, rhs)
+                du_dot_rhs, step_max, finite = self._linear.known_summary(du) or step_summary(du, rhs)
                 slope = -du_dot_rhs  # E'(0) along du: du . g
                 if finite and ((step_max < tol and self._short_step_converges(g_norm)) or slope < 0.0):
                     break  # at a round-off gradient (e.g. GPU atomics where nothing touches) the slope means nothing
@@ -259,6 +268,27 @@ class NewtonSteps(FrictionLag):
             if may_stall and short_steps == STALL_STEPS:
                 return False, iterations, (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} "
                                            "or less by the line search"), 0.0
+
+    def _read_gradient(self, ind, lag_change: bool, energy: bool) -> tuple:
+        """(-g and |g| on the free components, the normal load on the support, |u - u_lag| where ``lag_change``, E(u)
+        where ``energy`` on a GPU) at self.u, in one read (None for what is not asked for): the barrier's energy (for
+        the Hessian, ``_barrier_acts``), on a GPU whether the contact Hessian's side subset still holds
+        (``_contact_subset``), friction's lag distance (``_lag_change``) and E (for the line search, which would read it
+        otherwise; on the CPU, where a read costs no wait, E is left to it: an E evaluated here is wasted where the pass
+        moves the lag or converges) are reduced on the device and read with |g|."""
+        g = self._gradient(ind)
+        coverage = self.device.is_cuda and ind.count > 0  # the contact side subset's flag (``_gradient`` launched it)
+        energy = energy and self.device.is_cuda
+        if energy:
+            self._launch_energy(self.u, ind)
+        also = ((self._barrier_sum, 1),) + (((self._contact_sides.stale, 1),) if coverage else ()) \
+            + (((self._energy_sum, 1),) if energy else ()) + (((self._launch_lag_change(), 2),) if lag_change else ())
+        rhs, g_norm, load, barrier_energy, *more = negated_free_and_load(g, self._fixed_mask, also)
+        self.barrier_energy_read(barrier_energy)
+        if coverage:
+            self.contact_stale_read(more.pop(0))
+        e = more.pop(0) if energy else None
+        return rhs, g_norm, load, (float("nan") if more[1] else more[0]) if lag_change else None, e
 
     def _short_step_converges(self, g_norm: float) -> bool:
         """Whether a Newton step below newton_tol_mm at a gradient of ``g_norm`` (N, free dofs) shows convergence: where

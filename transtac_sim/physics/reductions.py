@@ -226,10 +226,13 @@ def launch_extremes(a: wp.array, out: wp.array) -> None:
     _launch(_extremes, [a], out, (MIN, MAX, SUM))
 
 
-def read_extremes(out: wp.array) -> tuple[float, float]:
-    """(min, max) from ``launch_extremes``'s [min, max, NaN count]."""
-    low, high, nans = (float(v) for v in out[:3].numpy())
-    return (float("nan"), float("nan")) if nans else (low, high)
+def read_extremes(out: wp.array, also: int = 0):
+    """(min, max) from ``launch_extremes``'s [min, max, NaN count]; with ``also`` = k > 0, ((min, max), the k values
+    the caller copied after them, out[3:3 + k], after the reduction: over partials it has used), in the same read."""
+    values = [float(v) for v in out[:3 + also].numpy()]
+    low, high, nans = values[:3]
+    result = (float("nan"), float("nan")) if nans else (low, high)
+    return (result, values[3:]) if also else result
 
 
 def negated_free(g: wp.array, fixed: wp.array) -> tuple[wp.array, float]:
@@ -237,12 +240,21 @@ def negated_free(g: wp.array, fixed: wp.array) -> tuple[wp.array, float]:
     return negated_free_and_load(g, fixed)[:2]
 
 
-def negated_free_and_load(g: wp.array, fixed: wp.array) -> tuple[wp.array, float, float]:
+def negated_free_and_load(g: wp.array, fixed: wp.array, also: tuple[tuple[wp.array, int], ...] = ()):
     """``negated_free`` and |sum of g's fixed z components| (N): the normal load the gel passes to its support, which at
-    equilibrium balances the indenters' normal force (one read for all three)."""
+    equilibrium balances the indenters' normal force (one read for all three). ``also``: (float64 array on g's device,
+    k) pairs whose first k values are read with them and returned after them, in order (the caller's scalars, without
+    reads of their own)."""
     rhs = wp.empty_like(g)
-    squares, load = _reduce(_negated_free, [g, fixed, rhs], (SUM, SUM), g.device)
-    return rhs, squares ** 0.5, abs(load)
+    extra = sum(count for _, count in also)
+    out = wp.empty(max(2 * (1 + reduction_blocks(g.device)), 2 + extra), dtype=wp.float64, device=g.device)
+    _launch(_negated_free, [g, fixed, rhs], out, (SUM, SUM))
+    at = 2
+    for array, count in also:  # over partials that the combine has used
+        wp.copy(out, array, dest_offset=at, count=count)
+        at += count
+    values = [float(v) for v in out[:at].numpy()]
+    return (rhs, values[0] ** 0.5, abs(values[1]), *values[2:])
 
 
 def step_summary(du: wp.array, rhs: wp.array) -> tuple[float, float, bool]:

@@ -138,12 +138,14 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self._normals: dict[tuple, tuple[wp.array, wp.array]] = {}  # ``_feature_normals`` by indenters chosen
         self._structs: dict[tuple, indenter_query.Indenters] = {}  # ``_indenter_struct`` by (role, indenters chosen)
         self._poses: list[np.ndarray] | None = None
-        self._barrier_acts = False  # some det F below the barrier's threshold at the last ``_gradient``'s u
+        self._barrier_energy: float | None = 0.0  # the barrier's energy at the last ``_gradient``'s u (None: not read)
+        self._contact_stale: bool | None = None  # the contact side subset misses stiff sides (None: not read)
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
         self._det_work = (wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device),
                           reduction_buffer(3, self.device))  # ``_min_det``'s det F and extremes
         self._g = wp.empty_like(self.u.dof_values)  # ``_gradient``'s result (N per node)
         self._barrier_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # the barrier's energy at ``_gradient``
+        self._lag_work = reduction_buffer(2, self.device)  # friction_lag.py ``_launch_lag_change``
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
         self._graphs = GraphCache(self.device)  # energy, det F, gradient and Hessian as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
