@@ -174,8 +174,13 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
     NewtonSteps._solve_step, NewtonSteps._newton = matched_step, from_oracle
     if part == "both":
         NewtonSteps._move_lag = lambda self, ind, remaining, change=None: False
-        # the step estimate is then compared with newton_tol_mm alone (friction_lag.py ``_estimate_band``)
+        # the step estimate is then compared with newton_tol_mm alone (friction_lag.py ``_estimate_band``): no lag
+        # distance, neither read with the gradient's norm (newton.py ``_read_gradient``, where this tree has it) nor
+        # on its own
         NewtonSteps._lag_change = lambda self: 0.0
+        read_gradient = getattr(NewtonSteps, "_read_gradient", None)
+        if read_gradient is not None:
+            NewtonSteps._read_gradient = lambda self, ind, lag_change, energy: read_gradient(self, ind, False, energy)
 
 
 def _relative_difference(g: np.ndarray, reference: np.ndarray) -> float:

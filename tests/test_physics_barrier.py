@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
+import warp.fem as fem
 
 from transtac_sim.physics import (
     ElasticMaterial,
@@ -16,6 +17,7 @@ from transtac_sim.physics import (
     RigidIndenter,
     SolverDidNotConverge,
     SolverSettings,
+    elasticity,
 )
 from transtac_sim.physics.box_mesh import box_tet_mesh
 from transtac_sim.physics.host_factorisation import bsr_to_scipy
@@ -68,6 +70,24 @@ def test_energy_gradient_and_hessian_agree_where_the_barrier_acts(device):
     np.testing.assert_allclose((e_plus - e_minus) / (2 * h), np.sum(g * v), rtol=1e-5)
     np.testing.assert_allclose((g_plus - g_minus).reshape(-1) / (2 * h), H @ v.reshape(-1), rtol=1e-4,
                                atol=1e-5 * np.abs(H @ v.reshape(-1)).max())
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_barrier_gradient_is_zero_where_its_energy_is(device):
+    """``barrier_gradient_form`` returns 0 on the device where the barrier's energy it is given is 0 (a GPU launches it
+    without reading that energy, assembly.py ``_gradient``), and the barrier's gradient where it is not."""
+    solver = _solver(SolverSettings(), device)
+    solver.u.dof_values.assign(wp.array(_compressed(solver, 0.08), dtype=wp.vec3d, device=device))
+    solver._gradient(_far_away(solver))
+    assert solver._barrier_acts
+
+    def gradient(energy: wp.array) -> np.ndarray:
+        return fem.integrate(elasticity.barrier_gradient_form, quadrature=solver._q_det,
+                             fields={"u": solver.u, "v": solver._test},
+                             values=solver._barrier_values() | {"energy": energy}, output_dtype=wp.vec3d).numpy()
+
+    assert np.abs(gradient(solver._barrier_sum)).max() > 0.0
+    assert not gradient(wp.zeros(1, dtype=wp.float64, device=device)).any()
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -28,7 +28,7 @@ from transtac_sim.physics.box_mesh import gel_block
 from transtac_sim.physics.device_linear import SHIFTS, fixed_blocks, project_fixed
 from transtac_sim.physics.host_factorisation import PCG_RATE_CHECK, bsr_to_scipy, pcg
 from transtac_sim.physics.linear import LinearSolver
-from transtac_sim.physics.reductions import max_abs, step_summary
+from transtac_sim.physics.reductions import max_abs, negated_free_and_load, step_summary
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import VolumetricHessian
@@ -241,6 +241,27 @@ def test_gpu_newton_with_the_device_cg_ends_where_the_host_factorisation_does():
     assert r_cg.record.converged and r_host.record.converged
     assert np.abs(r_cg.displacement_mm - r_host.displacement_mm).max() <= 2e-4  # mm, of about 0.35 mm
     assert np.abs(r_cg.forces_n - r_host.forces_n).max() <= 1e-3 * np.abs(r_host.forces_n).max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_newtons_one_read_gives_what_separate_reads_give(device):
+    """Newton's pass reads its scalars together (newton.py ``_read_gradient``): -g, |g|, the support's load, friction's
+    lag distance, and on a GPU E(u), equal to what the separate evaluations give; the barrier's energy and, on a GPU,
+    the contact sides' coverage flag are kept for the Hessian without a read of their own."""
+    solver, ind = _pressed_solver(device=device)
+    u = solver.u.dof_values.numpy()
+    solver.u_lag.dof_values.assign(wp.array(0.9 * u, dtype=wp.vec3d, device=device))  # a lag 10 % behind
+    rhs, g_norm, load, change, energy = solver._read_gradient(ind, True, True)
+    assert solver._barrier_energy == float(solver._barrier_sum.numpy()[0])
+    if solver.device.is_cuda:
+        assert solver._contact_stale is (solver._contact_sides.stale.numpy()[0] > 0.0)
+        assert energy == pytest.approx(solver._energy(solver.u, ind), rel=1e-13)
+    else:
+        assert solver._contact_stale is None and energy is None  # the CPU reads those where it needs them
+    assert change == max_abs(solver.u.dof_values, solver.u_lag.dof_values) > 0.0
+    expected = negated_free_and_load(solver._gradient(ind), solver._fixed_mask)
+    assert (g_norm, load) == expected[1:] and np.array_equal(rhs.numpy(), expected[0].numpy())
+    assert solver._read_gradient(ind, False, False)[3:] == (None, None)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -620,7 +641,8 @@ def test_contact_side_coverage_is_tested_on_the_device(device, monkeypatch):
     solver, ind = _pressed_solver(device=device)
     solver._hessian(ind, 1.0)  # the subset, from the stored contact state
     sides, st = solver._contact_sides, solver._contact_state
-    sides.launch_coverage(st.k_normal, st.k_slip, st.k_slip_dir, ind.count)
+    total = solver._q_contact.total_point_count()
+    sides.launch_coverage(st.k_normal, st.k_slip, st.k_slip_dir, ind.count, total)
     assert sides.stale.numpy()[0] == 0.0
     mask, points = sides.current.mask.copy(), sides.current.points
     edge = [s for s in np.flatnonzero(mask) if not mask[sides._neighbours[s].indices].all()][0]
@@ -628,7 +650,7 @@ def test_contact_side_coverage_is_tested_on_the_device(device, monkeypatch):
                                                                          (points * ind.count), 0.0)):
         k = st.k_normal.numpy().copy()
         k[side * points * ind.count] = 1.0  # a stiff point on that side
-        sides.launch_coverage(wp.array(k, dtype=wp.float64, device=device), st.k_slip, st.k_slip_dir, ind.count)
+        sides.launch_coverage(wp.array(k, dtype=wp.float64, device=device), st.k_slip, st.k_slip_dir, ind.count, total)
         assert sides.stale.numpy()[0] == stale
     monkeypatch.setattr(sides, "update", lambda stiff: pytest.fail("the contact state was read"))
     solver.contact_stale_read(0.0)

@@ -163,7 +163,7 @@ def test_oracle_lag_starts_each_step_from_the_recorded_solution(monkeypatch):
     from transtac_sim.simulation import simulate_frames
 
     solver_variants = trace_sequence.solver_variants
-    for name in ("_solve_step", "_newton", "_move_lag", "_lag_change"):
+    for name in ("_solve_step", "_newton", "_move_lag", "_lag_change", "_read_gradient"):
         monkeypatch.setattr(NewtonSteps, name, getattr(NewtonSteps, name))
         if name in vars(QuasiStaticSolver):  # a copy that another script's restore left on the subclass would hide
             monkeypatch.delattr(QuasiStaticSolver, name)  # the variants' patches of NewtonSteps (put back after)
@@ -193,14 +193,14 @@ def test_oracle_lag_starts_each_step_from_the_recorded_solution(monkeypatch):
         return result
 
     NewtonSteps._newton = spied
-    move_lag, lag_change = NewtonSteps._move_lag, NewtonSteps._lag_change
+    move_lag, lag_change, read_gradient = NewtonSteps._move_lag, NewtonSteps._lag_change, NewtonSteps._read_gradient
     solver_variants.oracle_lag(poses, solutions)
     oracle = run(3, 4)
     assert starts == [0.0, 0.0, 0.0] and ends == [0.0, 0.0, 0.0]  # set where Newton starts, never moved
     for a, b in zip(recorded, oracle, strict=True):
         assert np.abs(a.markers_gel_mm - b.markers_gel_mm).max() < 1e-3  # Newton's tolerance 1e-4 mm, lag within 1e-3
     NewtonSteps._solve_step, NewtonSteps._newton = solve_step, newton_steps
-    NewtonSteps._move_lag, NewtonSteps._lag_change = move_lag, lag_change
+    NewtonSteps._move_lag, NewtonSteps._lag_change, NewtonSteps._read_gradient = move_lag, lag_change, read_gradient
     _one_part_of_the_lag_from_the_recorded_solution(solver_variants, run, recorded, poses, solutions)
     shifted = poses.copy()
     shifted[1, :, 2, 3] -= 0.01

@@ -211,9 +211,11 @@ class Assembly:
         """Whether some det F is below the barrier's threshold at the last ``_gradient``'s u (its energy is not 0;
         otherwise its gradient and Hessian are 0): the energy read now unless the caller has read it with its own
         read since (``barrier_energy_read``)."""
+        if not self.settings.barrier_det_f > 0.0:
+            return False
         if self._barrier_energy is None:
             self._barrier_energy = float(self._barrier_sum.numpy()[0])
-        return self.settings.barrier_det_f > 0.0 and self._barrier_energy > 0.0
+        return self._barrier_energy > 0.0
 
     def barrier_energy_read(self, energy: float) -> None:
         """The barrier's energy at the last ``_gradient``'s u (N mm), read by the caller with its own read (newton.py:
@@ -246,7 +248,8 @@ class Assembly:
                       values={"st": self._contact_state}, output=self._g, add=True)
         if self.device.is_cuda:  # whether the contact Hessian's side subset still holds, for the caller's read
             st = self._contact_state
-            self._contact_sides.launch_coverage(st.k_normal, st.k_slip, st.k_slip_dir, ind.count)
+            self._contact_sides.launch_coverage(st.k_normal, st.k_slip, st.k_slip_dir, ind.count,
+                                                self._q_contact.total_point_count())
 
     def _hessian(self, ind, geometric: float, clamp: int = elasticity.CLAMPED) -> BsrMatrix:
         """The Hessian at self.u, where the last ``_gradient`` was evaluated (whose contact state and barrier flag it

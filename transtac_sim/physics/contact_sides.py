@@ -15,12 +15,12 @@ quadrature's numbering, which the contact state uses: ``qp_base[element] + k``.
 
 On a GPU the host would read the contact state back at every Newton Hessian only to learn that the subset still holds
 (the usual case), and each new subset makes its matrix, its places in the sum and the Hessian's CUDA graphs anew while
-the GPU waits (press_slide on an H100: 10 new subsets over frames 1-9, 0.12 s of host time in all;
+the GPU waits (press_slide on an H100: the contact state read at 164 Hessians over frames 1-9;
 scripts/fem_host_census.py). There ``launch_coverage`` tests on the device whether the subset still holds every stiff
-side's neighbours (one flag, which Newton reads with the gradient's norm), and a new subset takes ``rings`` rings of
-neighbours around the stiff sides instead of one, so that contact moving across the surface stays inside it longer
-(4 new subsets; press_slide frames 1-9 in 1.15-1.27 s against 1.25-1.56 s with one ring, BENCHMARKS.md
-``fem_folded_reads_gpu``).
+side's neighbours (one flag, which Newton reads with the gradient's norm: the contact state read at 3 Hessians), and a
+new subset takes ``rings`` rings of neighbours around the stiff sides instead of one, so that contact moving across
+the surface stays inside it longer (press_slide frames 1-9 in 1.15-1.27 s against 1.25-1.56 s with one ring,
+BENCHMARKS.md ``fem_folded_reads_gpu``).
 """
 
 from __future__ import annotations
@@ -101,13 +101,15 @@ class ContactSides:
         self._inner.assign(((self._neighbours @ outside) == 0.0).astype(np.int8))
         return True
 
-    def launch_coverage(self, k_normal: wp.array, k_slip: wp.array, k_slip_dir: wp.array, count: int) -> None:
-        """``stale`` = 1 where ``update`` with this contact state (the stiffnesses of ``count`` indenters per quadrature
-        point, contact.py ``ContactState``) would make a new subset, else 0: launched only, for a read of the caller's
-        (graph-capturable; before the first ``update`` every stiff point makes it 1)."""
-        points = len(k_normal) // (count * self._neighbours.shape[0])
+    def launch_coverage(self, k_normal: wp.array, k_slip: wp.array, k_slip_dir: wp.array, count: int,
+                        total_points: int) -> None:
+        """``stale`` = 1 where ``update`` with this contact state (the stiffnesses of ``count`` indenters at each of the
+        ``total_points`` quadrature points over every side, contact.py ``ContactState``: index q * count + i) would make
+        a new subset, else 0: launched only, for a read of the caller's (graph-capturable; before the first ``update``
+        every stiff point makes it 1)."""
+        points = total_points // self._neighbours.shape[0]
         self.stale.zero_()
-        wp.launch(_uncovered, dim=len(k_normal) // count, device=self._device,
+        wp.launch(_uncovered, dim=total_points, device=self._device,
                   inputs=[k_normal, k_slip, k_slip_dir, count, points, self._inner, self.stale])
 
     def _subset(self, mask: np.ndarray, points: int) -> SideSubset:

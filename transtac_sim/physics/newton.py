@@ -75,7 +75,7 @@ host reading a device scalar 13 times per Newton iteration, each read draining t
 norm with the barrier's energy, friction's lag distance and, on a GPU, the contact side subset's coverage and E where
 the line search needs it (``_read_gradient``); a device step's slope and length, and a step estimate's length, come
 with the CG's state (``LinearSolver.known_summary``): 6.4 reads per Newton iteration, frames 0.74-0.87x the time on an
-H100 (about 0.13-0.16 s), the same Newton iterations.
+H100 (about 0.13-0.16 s), the Newton iterations within the runs' spread.
 """
 
 from __future__ import annotations
