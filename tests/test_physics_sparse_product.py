@@ -254,7 +254,7 @@ def test_newtons_one_read_gives_what_separate_reads_give(device):
     rhs, g_norm, load, change, energy = solver._read_gradient(ind, True, True)
     assert solver._barrier_energy == float(solver._barrier_sum.numpy()[0])
     if solver.device.is_cuda:
-        assert solver._contact_stale is (solver._contact_sides.stale.numpy()[0] > 0.0)
+        assert solver._contact_stale is bool(solver._contact_sides.stale.numpy()[0] > 0.0)
         assert energy == pytest.approx(solver._energy(solver.u, ind), rel=1e-13)
     else:
         assert solver._contact_stale is None and energy is None  # the CPU reads those where it needs them
