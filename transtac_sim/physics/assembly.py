@@ -51,12 +51,7 @@ def _stiff_points(k_normal: wp.array(dtype=wp.float64), k_slip: wp.array(dtype=w
                   k_slip_dir: wp.array(dtype=wp.float64), count: int, stiff: wp.array(dtype=wp.int8)):
     """stiff[q] = 1 where any indenter has a normal or friction stiffness at contact quadrature point q."""
     q = wp.tid()
-    flag = wp.int8(0)
-    for i in range(count):
-        j = q * count + i
-        if k_normal[j] != wp.float64(0.0) or k_slip[j] != wp.float64(0.0) or k_slip_dir[j] != wp.float64(0.0):
-            flag = wp.int8(1)
-    stiff[q] = flag
+    stiff[q] = wp.where(contact.stiff_at(k_normal, k_slip, k_slip_dir, count, q), wp.int8(1), wp.int8(0))
 
 
 class DeviatoricTerm(NamedTuple):

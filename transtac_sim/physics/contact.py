@@ -76,6 +76,18 @@ class ContactState:
 
 
 @wp.func
+def stiff_at(k_normal: wp.array(dtype=wp.float64), k_slip: wp.array(dtype=wp.float64),
+             k_slip_dir: wp.array(dtype=wp.float64), count: int, q: int):
+    """Whether any of ``count`` indenters has a normal or friction stiffness at contact quadrature point q (the
+    ``ContactState`` entries q * count + i)."""
+    for i in range(count):
+        j = q * count + i
+        if k_normal[j] != wp.float64(0.0) or k_slip[j] != wp.float64(0.0) or k_slip_dir[j] != wp.float64(0.0):
+            return True
+    return False
+
+
+@wp.func
 def tangential_slip(ind: Indenters, st: ContactState, i: int, j: int, x: wp.vec3d, x_prev: wp.vec3d, n: wp.vec3d):
     """u_t: the slip since the anchor x_prev - stick (carried along with indenter i), in the plane normal to n."""
     dx = x - transform(ind.relative[i], x_prev - st.stick[j])

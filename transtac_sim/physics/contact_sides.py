@@ -32,6 +32,8 @@ import scipy.sparse as sp
 import warp as wp
 import warp.fem as fem
 
+from transtac_sim.physics.contact import stiff_at
+
 
 @dataclass(frozen=True)
 class SideSubset:
@@ -57,11 +59,8 @@ def _uncovered(k_normal: wp.array(dtype=wp.float64), k_slip: wp.array(dtype=wp.f
     """flag[0] = 1 where contact quadrature point q has a normal or friction stiffness (any indenter) on a side outside
     ``inner`` (the sides whose neighbours are all in the subset); left as it is elsewhere (0 from the caller)."""
     q = wp.tid()
-    if inner[q // points] == wp.int8(0):
-        for i in range(count):
-            j = q * count + i
-            if k_normal[j] != wp.float64(0.0) or k_slip[j] != wp.float64(0.0) or k_slip_dir[j] != wp.float64(0.0):
-                flag[0] = wp.float64(1.0)
+    if inner[q // points] == wp.int8(0) and stiff_at(k_normal, k_slip, k_slip_dir, count, q):
+        flag[0] = wp.float64(1.0)
 
 
 class ContactSides:

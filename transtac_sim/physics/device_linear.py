@@ -41,7 +41,7 @@ from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace
-from transtac_sim.physics.definite_cg import BlockJacobi, CgWorkspace, definite_cg
+from transtac_sim.physics.definite_cg import BlockJacobi, CgResult, CgWorkspace, definite_cg
 from transtac_sim.physics.reductions import free_part
 from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
 
@@ -185,10 +185,10 @@ class DeviceSolves:
         x = self._device_work().x
         x.zero_()
         cap = max(50, int(ESTIMATE_CAP_FACTOR * self._converged_iterations))
-        converged, iterations = self._cg(A, M, rhs, x, ESTIMATE_RTOL, cap, exact_below, refine_above)
+        result, iterations = self._cg(A, M, rhs, x, ESTIMATE_RTOL, cap, exact_below, refine_above)
         self.estimate_iterations += iterations
-        self.estimates_unconverged += not converged
-        return self._known_solution(x) if converged else None  # a copy: the kept x is the next solve's
+        self.estimates_unconverged += not result.converged
+        return self._known_solution(x, result) if result.converged else None  # a copy: the kept x is the next solve's
 
     def _device_work(self) -> DeviceWork:
         """The device path's arrays kept between solves (made on first use)."""
@@ -209,10 +209,10 @@ class DeviceSolves:
                 **{f"coarse_{k}_s": round(v, 3) for k, v in coarse.seconds.items()}}
 
     def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
-            exact_below: float, refine_above: float = 0.0) -> tuple[bool, int]:
+            exact_below: float, refine_above: float = 0.0) -> tuple[CgResult, int]:
         """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where ``refine_above`` <= max |x| <
-        ``exact_below`` (mm): (converged, iterations). Not converged also where A is found not to be positive definite
-        (definite_cg.py; ``not_definite`` counts those; a NaN stops it the same way)."""
+        ``exact_below`` (mm): (the last solve's result, iterations of both). Not converged also where A is found not to
+        be positive definite (definite_cg.py; ``not_definite`` counts those; a NaN stops it the same way)."""
         work = self._device_work()
         coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
         result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
@@ -221,15 +221,14 @@ class DeviceSolves:
             result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
             total += result.iterations
         self.not_definite += result.not_definite
-        self._last_result = result
-        return result.converged, total
+        return result, total
 
-    def _known_solution(self, x: wp.array) -> wp.array:
-        """A copy of the last CG's solution ``x``, whose (x . b, max |x|, finite) the CG read with its state: kept for
-        ``known_summary``."""
+    def _known_solution(self, x: wp.array, result: CgResult) -> wp.array:
+        """A copy of the CG's solution ``x``, kept for ``known_summary`` with the (x . b, max |x|, finite) that the CG
+        read with its state (``result``)."""
         out = wp.clone(x)
-        r = self._last_result
-        self._known = (out, (r.x_dot_b, r.x_max, bool(np.isfinite(r.x_max) and np.isfinite(r.x_dot_b))))
+        self._known = (out, (result.x_dot_b, result.x_max,
+                             bool(np.isfinite(result.x_max) and np.isfinite(result.x_dot_b))))
         return out
 
     def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
@@ -251,8 +250,8 @@ class DeviceSolves:
             else block_row_operator(H)
         M = BlockJacobi(H, inverse=work.inverse)
         work.x.zero_()
-        converged, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)
-        if not converged:
+        result, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)
+        if not result.converged:
             return None
         self._converged_iterations = self.last_iterations
         self._last_cg = (A, M)
@@ -261,4 +260,4 @@ class DeviceSolves:
             self._coarse_tried = True
             if work.coarse.update(H):
                 self._steps_since_coarse = 0
-        return self._known_solution(work.x)  # a copy: the kept x is the next solve's
+        return self._known_solution(work.x, result)  # a copy: the kept x is the next solve's

@@ -78,7 +78,6 @@ class LinearSolver(DeviceSolves):
         self._converged_iterations = 0  # CG iterations of the last converged device solve
         self._last_cg: tuple | None = None  # the last converged device system's (operator, preconditioner)
         self._work: DeviceWork | None = None  # the device path's kept arrays (``_device_work``)
-        self._last_result = None  # the device path's last CG result (definite_cg.py ``CgResult``)
         # (the last solution returned on the device path, its (x . b, max |x|, finite) read with the CG's state)
         self._known: tuple | None = None
         self._fixed_blocks: tuple | None = None  # (sparsity key, blocks, rows) of ``fixed_blocks`` for the last matrix
