@@ -24,7 +24,9 @@ CG solve makes its own work vectors, state and graph, as before commit 31c75b7; 
 float32 blocks stay kept, physics/device_linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py), ``--cg-unroll N`` (CG
-iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unrolled_gpu``).
+iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unrolled_gpu``). ``--no-replay`` launches the
+energy, det F, gradient and Hessian one kernel at a time instead of replaying their CUDA graphs (replay.py), so that
+``--gpu-activity`` lists their kernels (the device CG keeps its own graph).
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.
@@ -69,6 +71,7 @@ from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.reductions import max_abs
+from transtac_sim.physics.replay import GraphCache
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
@@ -152,6 +155,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
          float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
          fresh_cg_graphs: bool = typer.Option(False, help="no workspace kept between device CG solves"),
+         no_replay: bool = typer.Option(False, help="launch the solver's replayed sequences (replay.py) one by one, "
+                                        "so that --gpu-activity lists their kernels"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          cg_unroll: int = typer.Option(definite_cg.UNROLL, min=1, help="definite_cg.UNROLL: CG iterations per pass "
@@ -203,6 +208,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if fresh_cg_graphs:
         kept_cg = device_linear.definite_cg
         device_linear.definite_cg = lambda *args, workspace=None, **kwargs: kept_cg(*args, **kwargs)
+    if no_replay:
+        GraphCache.run = lambda cache, key, keep, launches: launches()
     if cg_tol is not None:
         LinearSolver.__init__ = functools.partialmethod(LinearSolver.__init__, cg_tol=cg_tol)
     reference = np.load(compare_to) if compare_to else None

@@ -33,6 +33,7 @@ import warp.fem as fem
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
+from transtac_sim.physics.barrier_hessian import BarrierHessian
 from transtac_sim.physics.definite_cg import add_dot
 from transtac_sim.physics.reductions import extremes, launch_extremes, negated_free, read_extremes
 from transtac_sim.physics.sparse_product import block_row_operator
@@ -255,8 +256,9 @@ class Assembly:
         (replay.py); the subset is found first, on the host.
 
         The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and is the sum's start;
-        the volumetric part is added tet by tet (volumetric_hessian.py), each other part through its blocks' places in
-        the sum (``_sum_slots``), one launch per part instead of a sparse matrix sum."""
+        the volumetric part is added tet by tet (volumetric_hessian.py), the barrier's only in the tets where it acts
+        (barrier_hessian.py), the contact part through its blocks' places in the sum (``_sum_slots``), one launch
+        instead of a sparse matrix sum."""
         subset = self._contact_subset(ind) if ind.count else None
         key = ("hessian", self.u.dof_values.ptr, id(ind), float(ind.stiffness), float(geometric), int(clamp),
                self._barrier_acts, id(subset))
@@ -266,7 +268,6 @@ class Assembly:
     def _hessian_terms(self, ind, geometric: float, clamp: int, subset) -> None:
         """The Hessian's parts summed into ``self._H`` (launches only, but for the kept matrices, places and set-up
         made on first use); ``subset``: the contact sides to integrate over, or None."""
-        f = {"du": self._trial, "v": self._test}
         H_dev = self._deviatoric().H
         if self._H is None:
             self._H = wp.sparse.bsr_copy(H_dev)
@@ -275,10 +276,8 @@ class Assembly:
         self._barrier_tets.zero_()
         if self._barrier_acts:  # some det F is below the barrier's threshold at the last ``_gradient``'s u, this one:
             # first, since it marks the tets where the barrier acts, whose clamped pressure is halved
-            barrier_qp = {"F_qp": self._F_det, "b_qp": self._b_det}
             fem.interpolate(elasticity.barrier_state_form, at=self._q_det, fields={"u": self.u},
-                            values=self._barrier_values() | barrier_qp | hessian)
-            parts["barrier"] = self._assemble("barrier", elasticity.barrier_hessian_form, self._q_det, f, barrier_qp)
+                            values=self._barrier_values() | {"F_qp": self._F_det, "b_qp": self._b_det} | hessian)
         if subset is not None:
             parts["contact"] = self._assemble(
                 "contact", contact.contact_hessian_form, subset.quadrature, {"du": subset.trial, "v": subset.test},
@@ -288,6 +287,11 @@ class Assembly:
         if self._volumetric is None:
             self._volumetric = VolumetricHessian.make(self._space, self.vertices_mm, self.tets, H, self.device)
         self._volumetric.add_to(H, self.u.dof_values, self._params, geometric, clamp, self._barrier_tets)
+        if self._barrier_acts:  # in the tets it marked (barrier_hessian.py)
+            if self._barrier_hessian is None:
+                self._barrier_hessian = BarrierHessian.make(self._space, self.vertices_mm, self.tets, self._q_det, H,
+                                                            self.device)
+            self._barrier_hessian.add_to(H, self._F_det, self._b_det, self._barrier_tets)
         for name, part in parts.items():
             self._add_part(H, name, part)
 

@@ -166,8 +166,8 @@ def barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp.
 def barrier_state_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d), stiffness: wp.float64,
                        j_hat: wp.float64, geometric: wp.float64, clamp: int, F_qp: wp.array(dtype=wp.mat33d),
                        b_qp: wp.array(dtype=wp.vec2d), barrier_tets: wp.array(dtype=wp.int32)):
-    """Stores F and kappa (geometric b', b'') at each check point for ``barrier_hessian_form``, and marks the tets
-    where the barrier acts in ``barrier_tets`` (zeroed by the caller); with ``clamp`` kappa b' is clamped to
+    """Stores F and kappa (geometric b', b'') at each check point for the Hessian (barrier_hessian.py), and marks the
+    tets where the barrier acts in ``barrier_tets`` (zeroed by the caller); with ``clamp`` kappa b' is clamped to
     mu/(2 sigma_max) (see the module's docstring)."""
     F = deformation_gradient(fem.grad(u, s))
     J = wp.determinant(F)
@@ -182,14 +182,3 @@ def barrier_state_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.ve
         p = wp.clamp(p, -bound, bound)
     F_qp[s.qp_index] = F
     b_qp[s.qp_index] = wp.vec2d(geometric * p, kappa * b[2])
-
-
-@fem.integrand
-def barrier_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, F_qp: wp.array(dtype=wp.mat33d),
-                         b_qp: wp.array(dtype=wp.vec2d)):
-    F = F_qp[s.qp_index]
-    b = b_qp[s.qp_index]
-    cof = cofactor(F)
-    gdu = fem.grad(du, s)
-    gv = fem.grad(v, s)
-    return b[1] * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + b[0] * wp.ddot(cofactor_delta(F, gdu), gv)

@@ -151,6 +151,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._volumetric = None  # the tet-by-tet volumetric Hessian's set-up (volumetric_hessian.py), made on first use
+        self._barrier_hessian = None  # the barrier Hessian's set-up (barrier_hessian.py), made on first use
         self._H = None  # the summed Hessian (``_hessian``), and each part's places in it (``_sum_slots``)
         self._H_slots: dict = {}
         self._increment: tuple[wp.array, np.ndarray, float] | None = None  # last (du, pose step, penetration)

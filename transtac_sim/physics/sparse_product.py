@@ -48,14 +48,21 @@ def block_row_range(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int
 
 
 @wp.func
+def block_index(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                row: int, col: int):
+    """The index of block (``row``, ``col``) among a BSR matrix's blocks, or -1 where it is not stored."""
+    blocks_of_row = block_row_range(offsets, row_counts, row)
+    for k in range(blocks_of_row[0], blocks_of_row[1]):
+        if columns[k] == col:
+            return k
+    return -1
+
+
+@wp.func
 def diagonal_block(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
                    row: int):
     """The index of block row ``row``'s diagonal block among a BSR matrix's blocks, or -1 where it has none."""
-    blocks_of_row = block_row_range(offsets, row_counts, row)
-    for k in range(blocks_of_row[0], blocks_of_row[1]):
-        if columns[k] == row:
-            return k
-    return -1
+    return block_index(offsets, row_counts, columns, row, row)
 
 
 @wp.kernel(enable_backward=False)

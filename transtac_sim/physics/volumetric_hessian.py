@@ -91,30 +91,14 @@ class VolumetricHessian:
     def make(space, vertices_mm: np.ndarray, tets: np.ndarray, total: BsrMatrix, device) -> VolumetricHessian:
         """``space``: the P1 or P2 warp.fem space of the mesh ``vertices_mm``, ``tets`` (positively oriented, as the
         solver keeps them); ``total``: a matrix with the sum's sparsity (every pair of nodes of a tet)."""
-        element_nodes = space.topology.element_node_indices().numpy()
-        X = space.node_positions().numpy()
-        corners = vertices_mm[tets]  # (tets, 4, 3)
-        edges = corners[:, 1:] - corners[:, :1]
-        inverse = np.linalg.inv(edges.transpose(0, 2, 1))  # rows: gradients of barycentric coordinates 1-3
-        lam_grad = np.concatenate([-inverse.sum(axis=1, keepdims=True), inverse], axis=1)  # (tets, 4, 3)
-        volume = np.abs(np.linalg.det(edges)) / 6.0
-        pairs = _coupled_nodes(X[element_nodes[0]], corners[0], element_nodes.shape[1])
-        for local, (i, j) in pairs:  # the same local layout in every tet
-            expected = 0.5 * (corners[:, i] + corners[:, j])
-            if not np.allclose(X[element_nodes[:, local]], expected, atol=1e-9 * (1.0 + np.abs(vertices_mm).max())):
-                raise RuntimeError("unexpected node layout in the warp.fem space")
-        nodes = element_nodes[:, [local for local, _ in pairs]]
-        grads = np.stack([lam_grad[:, i] + (lam_grad[:, j] if j != i else 0.0) for _, (i, j) in pairs], axis=1)
+        element_nodes, layout = element_node_layout(space, vertices_mm, tets)
+        lam_grad, volume = barycentric_gradients(vertices_mm, tets)
+        coupled = [local for local, (i, j) in enumerate(layout) if len(layout) == 4 or i != j]
+        nodes = element_nodes[:, coupled]
+        grads = np.stack([lam_grad[:, i] + (lam_grad[:, j] if j != i else 0.0) for i, j in
+                          (layout[local] for local in coupled)], axis=1)
         K = nodes.shape[1]
-        rows = np.repeat(nodes, K, axis=1).reshape(-1).astype(np.int64)
-        cols = np.tile(nodes, (1, K)).reshape(-1).astype(np.int64)
-        offsets = total.offsets.numpy()
-        keys = np.repeat(np.arange(total.nrow, dtype=np.int64), np.diff(offsets)) * total.ncol \
-            + total.columns.numpy()[:offsets[-1]]
-        want = rows * total.ncol + cols
-        slot = np.searchsorted(keys, want)
-        if np.any(slot >= len(keys)) or np.any(keys[np.minimum(slot, len(keys) - 1)] != want):
-            raise RuntimeError("a volumetric Hessian block lies outside the elements' sparsity")
+        slot = _block_slots(total, np.repeat(nodes, K, axis=1).reshape(-1), np.tile(nodes, (1, K)).reshape(-1))
         order = np.argsort(slot, kind="stable")
         targets, counts = np.unique(slot[order], return_counts=True)
 
@@ -125,7 +109,7 @@ class VolumetricHessian:
             nodes=arr(nodes.astype(np.int32), int), grads=arr(grads, wp.vec3d), volume=arr(volume, wp.float64),
             targets=arr(targets.astype(np.int32), int),
             offsets=arr(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), int),
-            sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(rows), dtype=wp.mat33d, device=device))
+            sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(slot), dtype=wp.mat33d, device=device))
 
     def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: int,
                barrier_tets: wp.array) -> None:
@@ -138,19 +122,44 @@ class VolumetricHessian:
                   inputs=[self.targets, self.offsets, self.sources, self.blocks, total.values])
 
 
-def _coupled_nodes(positions: np.ndarray, corners: np.ndarray, count: int) -> list[tuple[int, tuple[int, int]]]:
-    """(local node, (i, j)) for the nodes whose basis gradient at the centroid is not zero: P1 (4 nodes) its vertices
-    (i = j), P2 (10 nodes) its edge nodes (midpoint of vertices i, j), found by position in one tet."""
-    if count == 4:
-        return [(k, (k, k)) for k in range(4)]
-    if count != 10:
+def barycentric_gradients(vertices_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the gradients of each tet's 4 barycentric coordinates, (tets, 4, 3), 1/mm; each tet's volume, mm^3)."""
+    corners = vertices_mm[tets]  # (tets, 4, 3)
+    edges = corners[:, 1:] - corners[:, :1]
+    inverse = np.linalg.inv(edges.transpose(0, 2, 1))  # rows: gradients of barycentric coordinates 1-3
+    return np.concatenate([-inverse.sum(axis=1, keepdims=True), inverse], axis=1), np.abs(np.linalg.det(edges)) / 6.0
+
+
+def element_node_layout(space, vertices_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """(each tet's nodes in the P1 or P2 warp.fem ``space``, (tets, 4 or 10); per local node (i, j): the vertex i of the
+    tet where i = j, else the midpoint of its edge (i, j)), found by position in the first tet and checked in all."""
+    element_nodes = space.topology.element_node_indices().numpy()
+    X = space.node_positions().numpy()
+    corners = vertices_mm[tets]  # (tets, 4, 3)
+    count = element_nodes.shape[1]
+    if count not in (4, 10):
         raise ValueError(f"expected P1 or P2 tets (4 or 10 nodes), got {count}")
-    found = []
-    for local, x in enumerate(positions):
-        for i in range(4):
-            for j in range(i + 1, 4):
-                if np.allclose(x, 0.5 * (corners[i] + corners[j])):
-                    found.append((local, (i, j)))
-    if len(found) != 6:
-        raise RuntimeError("unexpected node layout in the warp.fem P2 space")
-    return found
+    layout = []
+    for x in X[element_nodes[0]]:
+        found = [(i, j) for i in range(4) for j in range(i, 4) if np.allclose(x, 0.5 * (corners[0, i] + corners[0, j]))]
+        if len(found) != 1:
+            raise RuntimeError("unexpected node layout in the warp.fem space")
+        layout.append(found[0])
+    for local, (i, j) in enumerate(layout):  # the same local layout in every tet
+        expected = 0.5 * (corners[:, i] + corners[:, j])
+        if not np.allclose(X[element_nodes[:, local]], expected, atol=1e-9 * (1.0 + np.abs(vertices_mm).max())):
+            raise RuntimeError("unexpected node layout in the warp.fem space")
+    return element_nodes, layout
+
+
+def _block_slots(total: BsrMatrix, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The indices among ``total``'s stored blocks of the blocks (rows[k], cols[k]) (block rows and columns); an error
+    where one is not stored."""
+    offsets = total.offsets.numpy()
+    keys = np.repeat(np.arange(total.nrow, dtype=np.int64), np.diff(offsets)) * total.ncol \
+        + total.columns.numpy()[:offsets[-1]]
+    want = rows.astype(np.int64) * total.ncol + cols.astype(np.int64)
+    slot = np.searchsorted(keys, want)
+    if np.any(slot >= len(keys)) or np.any(keys[np.minimum(slot, len(keys) - 1)] != want):
+        raise RuntimeError("a Hessian block lies outside the elements' sparsity")
+    return slot

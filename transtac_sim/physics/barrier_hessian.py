@@ -1,0 +1,136 @@
+"""The inversion barrier's Hessian (elasticity.py), added into the summed Newton matrix only in the tets where it acts.
+
+At each of a tet's check points q (the order-2 rule of elasticity.py's barrier, weights w_q, volume V) the barrier's
+block of the tet's nodes (a, b) is
+
+    V w_q [ kappa b''(J) (cof F g_a)(cof F g_b)^T + s C_ab ],   column j of C_ab = dcof(F)[e_j g_b^T] g_a,
+
+with s = geometric kappa b'(J) (clamped with ``clamp``) and g_a the gradient of node a's basis function at q: every pair
+of the tet's nodes couples there (10 nodes of a P2 tet: phi = l_i (2 l_i - 1) at vertex i, 4 l_i l_j at the edge (i, j)
+node; 4 of a P1 tet). F and (s, kappa b'') at each point come from ``elasticity.barrier_state_form``, which also marks
+the tets with some J below j_hat (``barrier_tets``). Elsewhere b' = b'' = 0 and a tet adds nothing, yet warp.fem's
+assembly of the integrand evaluated every tet's 100 blocks at 4 points and scattered them: on press_slide on an H100,
+1.3 ms of GPU time per Hessian where the barrier acted, about one in five. Here one thread per (tet, node pair) returns
+at once outside the marked tets and adds its block atomically into the sum: under 0.1 ms, the GPU's work 0.88-0.96x
+(BENCHMARKS.md ``fem_barrier_hessian_gpu``). On a GPU the order of two marked tets' adds into a shared block varies
+from run to run (round-off in the last bits, as the CG's sums); Warp's CPU runs the threads in one order. The set-up
+(``make``) is made the first time the barrier acts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from warp.sparse import BsrMatrix
+
+from transtac_sim.physics.elasticity import cofactor, cofactor_delta
+from transtac_sim.physics.sparse_product import block_index
+from transtac_sim.physics.volumetric_hessian import barycentric_gradients, element_node_layout
+
+_f = wp.float64
+
+
+@wp.func
+def _basis_gradient(lam_grad: wp.array2d(dtype=wp.vec3d), t: int, node: wp.vec2i, bary: wp.vec4d, degree: int):
+    """Gradient (1/mm) at barycentric point ``bary`` of tet t's basis function of a local node: vertex i (node =
+    (i, i)) or edge (i, j) of a P2 tet, vertex i of a P1 one."""
+    i = node[0]
+    j = node[1]
+    if degree == 1:
+        return lam_grad[t, i]
+    if i == j:
+        return (_f(4.0) * bary[i] - _f(1.0)) * lam_grad[t, i]
+    return _f(4.0) * (bary[i] * lam_grad[t, j] + bary[j] * lam_grad[t, i])
+
+
+@wp.kernel(enable_backward=False)
+def _add_barrier_blocks(barrier_tets: wp.array(dtype=wp.int32), layout: wp.array(dtype=wp.vec2i),
+                        lam_grad: wp.array2d(dtype=wp.vec3d), volume: wp.array(dtype=wp.float64),
+                        points: wp.array(dtype=wp.vec4d), weights: wp.array(dtype=wp.float64), degree: int,
+                        F_qp: wp.array(dtype=wp.mat33d), b_qp: wp.array(dtype=wp.vec2d),
+                        slots: wp.array2d(dtype=int), total: wp.array(dtype=wp.mat33d)):
+    """total[slots[t, a K + b]] += the barrier's block of tet t's nodes (a, b), summed over its check points, where the
+    barrier acts in tet t."""
+    t, pair = wp.tid()
+    if barrier_tets[t] == 0:
+        return
+    K = layout.shape[0]
+    Q = points.shape[0]
+    a = pair // K
+    b = pair - a * K
+    block = wp.mat33d()
+    for q in range(Q):
+        F = F_qp[t * Q + q]
+        s = b_qp[t * Q + q]  # (geometric kappa b' (clamped), kappa b'')
+        ga = _basis_gradient(lam_grad, t, layout[a], points[q], degree)
+        gb = _basis_gradient(lam_grad, t, layout[b], points[q], degree)
+        cof = cofactor(F)
+        ba = cof * ga
+        bb = cof * gb
+        c0 = s[1] * bb[0] * ba + s[0] * (cofactor_delta(F, wp.outer(wp.vec3d(_f(1.0), _f(0.0), _f(0.0)), gb)) * ga)
+        c1 = s[1] * bb[1] * ba + s[0] * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(1.0), _f(0.0)), gb)) * ga)
+        c2 = s[1] * bb[2] * ba + s[0] * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(0.0), _f(1.0)), gb)) * ga)
+        block += weights[q] * wp.matrix_from_cols(c0, c1, c2)
+    wp.atomic_add(total, slots[t, pair], volume[t] * block)
+
+
+@wp.kernel(enable_backward=False)
+def _find_slots(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                nodes: wp.array2d(dtype=int), slots: wp.array2d(dtype=int)):
+    """slots[t, a K + b] = the index of block (nodes[t, a], nodes[t, b]) among the matrix's blocks (-1: not stored)."""
+    t, pair = wp.tid()
+    K = nodes.shape[1]
+    a = pair // K
+    slots[t, pair] = block_index(offsets, row_counts, columns, nodes[t, a], nodes[t, pair - a * K])
+
+
+@dataclass(frozen=True)
+class BarrierHessian:
+    """What the barrier's assembly needs, made once per mesh (``make``): the tets' node layout, barycentric gradients
+    (1/mm) and volumes (mm^3), the check points (barycentric) and weights (fractions of the volume), and where each
+    tet's blocks go in the summed matrix."""
+
+    layout: wp.array  # (K,) vec2i: local node -> (i, j), see volumetric_hessian.element_node_layout
+    lam_grad: wp.array  # (tets, 4) vec3d
+    volume: wp.array  # (tets,) float64
+    points: wp.array  # (Q,) vec4d
+    weights: wp.array  # (Q,) float64
+    degree: int
+    slots: wp.array  # (tets, K K) int: the sum's block of tet t's nodes (a, b) at [t, a K + b]
+
+    @staticmethod
+    def make(space, vertices_mm: np.ndarray, tets: np.ndarray, quadrature, total: BsrMatrix, device) -> BarrierHessian:
+        """``space``: the P1 or P2 warp.fem space of the mesh ``vertices_mm``, ``tets`` (positively oriented, as the
+        solver keeps them); ``quadrature``: the barrier's regular quadrature on its cells (whose point t Q + q is tet
+        t's q-th, as in ``barrier_state_form``'s arrays); ``total``: a matrix with the sum's sparsity (every pair of
+        nodes of a tet)."""
+        element_nodes, layout = element_node_layout(space, vertices_mm, tets)
+        lam_grad, volume = barycentric_gradients(vertices_mm, tets)
+        reference = np.asarray(quadrature.points, dtype=np.float64)  # (Q, 3): barycentric coordinates 1-3
+        points = np.concatenate([1.0 - reference.sum(axis=1, keepdims=True), reference], axis=1)
+        weights = np.asarray(quadrature.weights, dtype=np.float64)
+        if quadrature.total_point_count() != len(tets) * len(weights):
+            raise ValueError(f"{quadrature.total_point_count()} check points for {len(tets)} tets of {len(weights)}")
+        K = element_nodes.shape[1]
+        slots = wp.empty((len(tets), K * K), dtype=int, device=device)  # found on the device (2.2M on press_slide)
+        wp.launch(_find_slots, dim=slots.shape, device=device,
+                  inputs=[total.offsets, total.row_counts, total.columns,
+                          wp.array(element_nodes.astype(np.int32), dtype=int, device=device), slots])
+        if slots.numpy().min() < 0:
+            raise RuntimeError("a barrier Hessian block lies outside the elements' sparsity")
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=device)
+
+        return BarrierHessian(layout=arr(np.array(layout, dtype=np.int32), wp.vec2i), lam_grad=arr(lam_grad, wp.vec3d),
+                              volume=arr(volume, wp.float64), points=arr(points, wp.vec4d),
+                              weights=arr(weights, wp.float64), degree=1 if K == 4 else 2, slots=slots)
+
+    def add_to(self, total: BsrMatrix, F_qp: wp.array, b_qp: wp.array, barrier_tets: wp.array) -> None:
+        """Adds the barrier's Hessian to ``total``'s blocks, in place, in the tets marked in ``barrier_tets``, from the
+        check points' F and (s, kappa b'') of ``elasticity.barrier_state_form``."""
+        wp.launch(_add_barrier_blocks, dim=self.slots.shape, device=total.values.device,
+                  inputs=[barrier_tets, self.layout, self.lam_grad, self.volume, self.points, self.weights, self.degree,
+                          F_qp, b_qp, self.slots, total.values])
