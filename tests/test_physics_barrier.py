@@ -115,6 +115,28 @@ def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
         assert expected.nnz > 0 and abs(bsr_to_scipy(total) - expected).max() <= 1e-12 * abs(expected).max()
 
 
+def test_summed_hessian_adds_the_barrier_where_it_acts():
+    """The Newton matrix (assembly.py ``_hessian``) where the barrier acts in some tets equals the one without the
+    barrier plus warp.fem's assembly of the barrier's integrand over every tet (the exact Hessian, whose volumetric
+    part does not depend on where the barrier acts)."""
+    with_barrier, without = _solver(SolverSettings()), _solver(SolverSettings(barrier_det_f=0.0))
+    X = with_barrier._space.node_positions().numpy()
+    u = X * np.array([0.0, 0.0, 1.0]) * (0.05 + 0.45 * X[:, :1] / 2.0 - 1.0)
+    summed = []
+    for solver in (with_barrier, without):
+        ind = _far_away(solver)
+        solver.u.dof_values.assign(wp.array(u, dtype=wp.vec3d))
+        solver._gradient(ind)
+        summed.append(bsr_to_scipy(solver._hessian(ind, geometric=1.0, clamp=elasticity.EXACT)))
+    acting = int(with_barrier._barrier_tets.numpy().sum())
+    assert with_barrier._barrier_acts and 0 < acting < len(with_barrier.tets)
+    barrier = bsr_to_scipy(fem.integrate(_barrier_hessian_form, quadrature=with_barrier._q_det,
+                                         fields={"du": with_barrier._trial, "v": with_barrier._test},
+                                         values={"F_qp": with_barrier._F_det, "b_qp": with_barrier._b_det},
+                                         output_dtype=wp.float64))
+    assert barrier.nnz > 0 and abs(summed[0] - summed[1] - barrier).max() <= 1e-11 * abs(barrier).max()
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_barrier_gradient_is_zero_where_its_energy_is(device):
     """``barrier_gradient_form`` returns 0 on the device where the barrier's energy it is given is 0 (a GPU launches it

@@ -5,10 +5,10 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 
 - the deviatoric term is quadratic in u: its Hessian H_dev is assembled once, and its energy and gradient are products
   with it (``_deviatoric``) instead of integrations at 4 points per tet;
-- the barrier and contact Hessians are assembled into kept matrices whose sparsity does not change (``_assemble``:
-  warp.fem's mapped construction, values only after the first assembly), and added into one kept matrix with the
-  deviatoric part's sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point
-  per tet) is added to it tet by tet (volumetric_hessian.py);
+- the contact Hessian is assembled into a kept matrix whose sparsity does not change (``_assemble``: warp.fem's mapped
+  construction, values only after the first assembly) and added into one kept matrix with the deviatoric part's
+  sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point per tet) is added to
+  it tet by tet (volumetric_hessian.py), the barrier's in the tets where it acts (barrier_hessian.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0; on a GPU
   the gradient's integrand returns 0 on the device, so that the energy need not be read first);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the

@@ -11,10 +11,10 @@ node; 4 of a P1 tet). F and (s, kappa b'') at each point come from ``elasticity.
 the tets with some J below j_hat (``barrier_tets``). Elsewhere b' = b'' = 0 and a tet adds nothing, yet warp.fem's
 assembly of the integrand evaluated every tet's 100 blocks at 4 points and scattered them: on press_slide on an H100,
 1.3 ms of GPU time per Hessian where the barrier acted, about one in five. Here one thread per (tet, node pair) returns
-at once outside the marked tets and adds its block atomically into the sum: under 0.1 ms, the GPU's work 0.88-0.96x
-(BENCHMARKS.md ``fem_barrier_hessian_gpu``). On a GPU the order of two marked tets' adds into a shared block varies
-from run to run (round-off in the last bits, as the CG's sums); Warp's CPU runs the threads in one order. The set-up
-(``make``) is made the first time the barrier acts.
+at once outside the marked tets and adds its block atomically into the sum: by the kernel times there, about 0.1 ms or
+less; the GPU's work per Newton iteration 0.94-0.97x (BENCHMARKS.md ``fem_barrier_hessian_gpu``). On a GPU the order
+of two marked tets' adds into a shared block varies from run to run (round-off in the last bits, as the CG's sums);
+Warp's CPU runs the threads in one order. The set-up (``make``) is made the first time the barrier acts.
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ class BarrierHessian:
         if quadrature.total_point_count() != len(tets) * len(weights):
             raise ValueError(f"{quadrature.total_point_count()} check points for {len(tets)} tets of {len(weights)}")
         K = element_nodes.shape[1]
-        slots = wp.empty((len(tets), K * K), dtype=int, device=device)  # found on the device (2.2M on press_slide)
+        slots = wp.empty((len(tets), K * K), dtype=int, device=device)  # on the device: 21,890 x 100 on press_slide
         wp.launch(_find_slots, dim=slots.shape, device=device,
                   inputs=[total.offsets, total.row_counts, total.columns,
                           wp.array(element_nodes.astype(np.int32), dtype=int, device=device), slots])

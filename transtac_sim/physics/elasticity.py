@@ -11,7 +11,7 @@ not lock, while the fully integrated mu-term keeps the stiffness matrix free of 
 
 Gradient (N):   mu F : grad v  +  s cof(F) : grad v,          s = lam (J - alpha)
 Hessian:        mu grad du : grad v + lam (cof F : grad du)(cof F : grad v) + s_h dcof(F)[grad du] : grad v
-                (its volumetric part assembled tet by tet in volumetric_hessian.py)
+                (its volumetric part assembled tet by tet in volumetric_hessian.py; the barrier's: barrier_hessian.py)
 
 with cof(F) = dJ/dF = [f1 x f2, f2 x f0, f0 x f1] (columns f_i of F). ``s_h`` is ``geometric`` times
 either ``s`` itself (the exact Hessian) or, with ``clamp``, ``s`` clamped to [-mu/sigma_max, mu/sigma_max]
@@ -49,7 +49,7 @@ import warp.fem as fem
 
 _f = wp.float64
 
-#: How a Hessian takes the volumetric term's geometric part (the ``clamp`` argument of the Hessian forms and of
+#: How a Hessian takes the volumetric term's geometric part (the ``clamp`` argument of ``barrier_state_form`` and of
 #: volumetric_hessian.py; newton.py ``_hessian_ladder``): as it is, or with the pressure clamped (and the barrier's too).
 EXACT = 0
 CLAMPED = 1
