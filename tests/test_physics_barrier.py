@@ -86,6 +86,22 @@ def _barrier_hessian_form(s: fem.Sample, du: fem.Field, v: fem.Field, F_qp: wp.a
     return b[1] * wp.ddot(cof, gdu) * wp.ddot(cof, gv) + b[0] * wp.ddot(cofactor_delta(F, gdu), gv)
 
 
+def _barrier_reference(solver: QuasiStaticSolver):
+    """warp.fem's assembly of the barrier's Hessian over every tet, from the check points' F and (s, kappa b'') that
+    ``barrier_state_form`` last stored (a scipy matrix)."""
+    return bsr_to_scipy(fem.integrate(_barrier_hessian_form, quadrature=solver._q_det,
+                                      fields={"du": solver._trial, "v": solver._test},
+                                      values={"F_qp": solver._F_det, "b_qp": solver._b_det}, output_dtype=wp.float64))
+
+
+def _squeezed_along_x(solver: QuasiStaticSolver, noise: float = 0.0) -> np.ndarray:
+    """Dof values squeezing the 2 mm block to det F 0.05 at x = 0 and 0.5 at x = 2 (the barrier acts in some tets, not
+    all), plus ``noise`` mm of a random field."""
+    X = solver._space.node_positions().numpy()
+    u = X * np.array([0.0, 0.0, 1.0]) * (0.05 + 0.45 * X[:, :1] / 2.0 - 1.0)
+    return u + noise * np.random.default_rng(3).standard_normal(X.shape)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("degree", [1, 2])
 def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
@@ -93,10 +109,7 @@ def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
     integrand over every tet: exact, clamped and Gauss-Newton, at a state squeezed to det F 0.05 at one end of the
     block and 0.5 at the other (the barrier acts in some tets, not all)."""
     solver = _solver(SolverSettings(degree=degree), device)
-    X = solver._space.node_positions().numpy()
-    squeeze = 0.05 + 0.45 * X[:, :1] / 2.0  # along x
-    u = X * np.array([0.0, 0.0, 1.0]) * (squeeze - 1.0) + 0.002 * np.random.default_rng(3).standard_normal(X.shape)
-    solver.u.dof_values.assign(wp.array(u, dtype=wp.vec3d, device=device))
+    solver.u.dof_values.assign(wp.array(_squeezed_along_x(solver, 0.002), dtype=wp.vec3d, device=device))
     total = wp.sparse.bsr_copy(solver._deviatoric().H)
     barrier = BarrierHessian.make(solver._space, solver.vertices_mm, solver.tets, solver._q_det, total, solver.device)
     values = {"F_qp": solver._F_det, "b_qp": solver._b_det}
@@ -107,9 +120,7 @@ def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
                                                                     "barrier_tets": solver._barrier_tets})
         acting = int(solver._barrier_tets.numpy().sum())
         assert 0 < acting < len(solver.tets)
-        expected = bsr_to_scipy(fem.integrate(_barrier_hessian_form, quadrature=solver._q_det,
-                                              fields={"du": solver._trial, "v": solver._test}, values=values,
-                                              output_dtype=wp.float64))
+        expected = _barrier_reference(solver)
         total.values.zero_()
         barrier.add_to(total, solver._F_det, solver._b_det, solver._barrier_tets)
         assert expected.nnz > 0 and abs(bsr_to_scipy(total) - expected).max() <= 1e-12 * abs(expected).max()
@@ -120,8 +131,7 @@ def test_summed_hessian_adds_the_barrier_where_it_acts():
     barrier plus warp.fem's assembly of the barrier's integrand over every tet (the exact Hessian, whose volumetric
     part does not depend on where the barrier acts)."""
     with_barrier, without = _solver(SolverSettings()), _solver(SolverSettings(barrier_det_f=0.0))
-    X = with_barrier._space.node_positions().numpy()
-    u = X * np.array([0.0, 0.0, 1.0]) * (0.05 + 0.45 * X[:, :1] / 2.0 - 1.0)
+    u = _squeezed_along_x(with_barrier)
     summed = []
     for solver in (with_barrier, without):
         ind = _far_away(solver)
@@ -130,10 +140,7 @@ def test_summed_hessian_adds_the_barrier_where_it_acts():
         summed.append(bsr_to_scipy(solver._hessian(ind, geometric=1.0, clamp=elasticity.EXACT)))
     acting = int(with_barrier._barrier_tets.numpy().sum())
     assert with_barrier._barrier_acts and 0 < acting < len(with_barrier.tets)
-    barrier = bsr_to_scipy(fem.integrate(_barrier_hessian_form, quadrature=with_barrier._q_det,
-                                         fields={"du": with_barrier._trial, "v": with_barrier._test},
-                                         values={"F_qp": with_barrier._F_det, "b_qp": with_barrier._b_det},
-                                         output_dtype=wp.float64))
+    barrier = _barrier_reference(with_barrier)
     assert barrier.nnz > 0 and abs(summed[0] - summed[1] - barrier).max() <= 1e-11 * abs(barrier).max()
 
 
