@@ -46,8 +46,8 @@ def _last_system(scene: Path, frames: int, device: str = "cuda") -> dict:
     kept: dict = {}
     solve_cg = device_linear.DeviceSolves._solve_cg
 
-    def keeping(self, H, rhs, rtol, exact_below, coarse_from_this=True):
-        x = solve_cg(self, H, rhs, rtol, exact_below, coarse_from_this)
+    def keeping(self, H, rhs, rtol, exact_below, coarse_from_this=True, **kwargs):
+        x = solve_cg(self, H, rhs, rtol, exact_below, coarse_from_this, **kwargs)
         if x is not None:
             kept.update(H=H, rhs=wp.clone(rhs), linear=self)
         return x

@@ -13,7 +13,12 @@ frame out of the totals (kernel compilation on a fresh machine).
 ``--gpu-activity`` (CUDA only) times the frames without the per-phase synchronisation and records what the GPU
 itself did (CUPTI through ``wp.timing_begin``): kernel, copy and allocation time against the wall time, and the
 kernels that took the most. A GPU busy for a small share of the wall time is waiting on the host (launches,
-Python, host reads), and more work per launch (larger or batched systems) comes almost free.
+Python, host reads), and more work per launch (larger or batched systems) comes almost free. ``--host-profile FILE``
+runs the counted frames under cProfile, also without the phase timing, and writes its statistics to FILE (``python -m
+pstats FILE``): where the host's own time goes (on a GPU a read's wait falls into ``array.numpy``'s copy).
+``--passes N`` solves the frames N times in one process, each pass with a new solver as ``generate``'s sequences in
+one worker have, and counts the last: what is made once per process (Warp's kernels for a part of the solver first
+used in a later frame, such as the warm start of a slide) is then paid for by the earlier passes.
 
 To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 0: every CG solve to its
 tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
@@ -50,8 +55,10 @@ from the recorded one per load step (BENCHMARKS.md ``fem_lag_pressure_oracle``).
 
 from __future__ import annotations
 
+import cProfile
 import dataclasses
 import functools
+import pstats
 import statistics
 import time
 from collections import defaultdict
@@ -152,6 +159,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          estimate_cap_factor: float = solver_variants.ESTIMATE_CAP_FACTOR_OPTION,
          friction_lag_moves: int | None = solver_variants.FRICTION_LAG_MOVES_OPTION,
          gpu_activity: bool = typer.Option(False, help="GPU busy time against wall time (CUDA; no phase timing)"),
+         passes: int = typer.Option(1, min=1, help="solve the scene's frames this many times in one process, each "
+                                    "with a new solver as generate's sequences have, and count the last pass"),
+         host_profile: Path | None = typer.Option(None, help="cProfile the host over the counted frames (no phase "
+                                                  "timing) into this pstats file"),
          warp_spmv: bool = typer.Option(False, help="Warp's bsr_mv in the CG (before sparse_product.py)"),
          float64_cg_matrix: bool = typer.Option(False, help="the device CG's product on the float64 matrix"),
          fresh_cg_graphs: bool = typer.Option(False, help="no workspace kept between device CG solves"),
@@ -224,7 +235,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     missing = [name for cls, names in PHASES.items() for name in names if not hasattr(cls, name)]
     if missing:  # an older tree through PYTHONPATH (a before/after comparison)
         print(f"phases not in this tree's solver, not timed: {', '.join(missing)}")
-    originals = [] if gpu_activity else [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items()
+    timed_phases = not (gpu_activity or host_profile)
+    originals = [] if not timed_phases else [(cls, name, clock.wrap(cls, name)) for cls, names in PHASES.items()
                                          for name in names if hasattr(cls, name)]
     activity: list = []
     failures = []
@@ -239,25 +251,41 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     QuasiStaticSolver._solve_step = noting_failures
     frame_seconds, frame_iterations = [], []
     estimates, stop_recording = _record_estimates()
+    profiler = cProfile.Profile() if host_profile else None
+
+    def counting_from_here() -> None:  # what the frames before leave out of the figures
+        clock.reset()
+        estimates.clear()
+        if gpu_activity:
+            wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        if profiler:
+            profiler.enable()
+
     try:
-        for f in simulate_frames(setup, frames, StageClock()):
-            frame_seconds.append(f.solver["seconds"])
-            frame_iterations.append(f.solver["iterations"])
-            markers.append(f.markers_gel_mm)
-            diff = ""
-            if reference is not None and f.frame < len(reference["markers"]):
-                diff = f", markers differ by {np.abs(f.markers_gel_mm - reference['markers'][f.frame]).max():.2g} mm"
-            print(f"frame {f.frame}: {f.solver['seconds']:.2f} s, {f.solver['iterations']} Newton iterations, "
-                  f"{f.solver['substeps']} sub-step(s), Fz {', '.join(f'{x[2]:.4f}' for x in f.forces_n)} N{diff}",
-                  flush=True)
-            if skip_first and f.frame == 0:
-                clock.reset()
-                estimates.clear()
-                if gpu_activity:
-                    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        for n in range(passes):
+            for lst in (frame_seconds, frame_iterations, markers):  # the figures are the last pass's
+                lst.clear()
+            if n == passes - 1 and not skip_first:
+                counting_from_here()
+            for f in simulate_frames(setup, frames, StageClock()):
+                frame_seconds.append(f.solver["seconds"])
+                frame_iterations.append(f.solver["iterations"])
+                markers.append(f.markers_gel_mm)
+                diff = ""
+                if reference is not None and f.frame < len(reference["markers"]):
+                    diff = (f", markers differ by "
+                            f"{np.abs(f.markers_gel_mm - reference['markers'][f.frame]).max():.2g} mm")
+                print(f"{f'pass {n + 1}, ' if passes > 1 else ''}frame {f.frame}: {f.solver['seconds']:.2f} s, "
+                      f"{f.solver['iterations']} Newton iterations, {f.solver['substeps']} sub-step(s), "
+                      f"Fz {', '.join(f'{x[2]:.4f}' for x in f.forces_n)} N{diff}", flush=True)
+                if skip_first and f.frame == 0 and n == passes - 1:
+                    counting_from_here()
         if gpu_activity:
             activity = wp.timing_end()
     finally:
+        if profiler:
+            profiler.disable()
+            profiler.dump_stats(host_profile)
         for cls, name, original in originals:
             setattr(cls, name, original)
         QuasiStaticSolver._solve_step = solve_step
@@ -287,6 +315,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
               + ", ".join(f"{e:.2f}" for e in penetration_errors))
     if gpu_activity:
         print_gpu_activity(activity, total)
+        return
+    if profiler:
+        pstats.Stats(profiler).sort_stats("tottime").print_stats(40)
         return
     work = clock.linear_solver._work if clock.linear_solver else None
     print(f"device solves stopped at non-positive curvature: {clock.count('not_definite')}; host factorisations: "

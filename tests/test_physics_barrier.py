@@ -23,6 +23,7 @@ from transtac_sim.physics.barrier_hessian import BarrierHessian
 from transtac_sim.physics.box_mesh import box_tet_mesh
 from transtac_sim.physics.elasticity import cofactor, cofactor_delta
 from transtac_sim.physics.host_factorisation import bsr_to_scipy
+from transtac_sim.physics.volumetric_hessian import TetGeometry
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import fem_stability as fs  # noqa: E402
@@ -111,7 +112,8 @@ def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
     solver = _solver(SolverSettings(degree=degree), device)
     solver.u.dof_values.assign(wp.array(_squeezed_along_x(solver, 0.002), dtype=wp.vec3d, device=device))
     total = wp.sparse.bsr_copy(solver._deviatoric().H)
-    barrier = BarrierHessian.make(solver._space, solver.vertices_mm, solver.tets, solver._q_det, total, solver.device)
+    geometry = TetGeometry.of(solver._space, solver.vertices_mm, solver.tets)
+    barrier = BarrierHessian.make(geometry, solver._q_det, total, solver.device)
     values = {"F_qp": solver._F_det, "b_qp": solver._b_det}
     for geometric, clamp in ((1.0, elasticity.EXACT), (1.0, elasticity.CLAMPED), (0.0, elasticity.CLAMPED)):
         solver._barrier_tets.zero_()

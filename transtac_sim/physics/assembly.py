@@ -37,7 +37,7 @@ from transtac_sim.physics.barrier_hessian import BarrierHessian
 from transtac_sim.physics.definite_cg import add_dot
 from transtac_sim.physics.reductions import extremes, launch_extremes, negated_free, read_extremes
 from transtac_sim.physics.sparse_product import block_row_operator
-from transtac_sim.physics.volumetric_hessian import VolumetricHessian
+from transtac_sim.physics.volumetric_hessian import TetGeometry, VolumetricHessian
 
 
 @wp.kernel(enable_backward=False)
@@ -285,12 +285,12 @@ class Assembly:
         H = self._H
         wp.copy(H.values, H_dev.values, count=H_dev.nnz)
         if self._volumetric is None:
-            self._volumetric = VolumetricHessian.make(self._space, self.vertices_mm, self.tets, H, self.device)
+            self._volumetric = VolumetricHessian.make(TetGeometry.of(self._space, self.vertices_mm, self.tets), H,
+                                                      self.device)
         self._volumetric.add_to(H, self.u.dof_values, self._params, geometric, clamp, self._barrier_tets)
         if self._barrier_acts:  # in the tets it marked (barrier_hessian.py)
             if self._barrier_hessian is None:
-                self._barrier_hessian = BarrierHessian.make(self._space, self.vertices_mm, self.tets, self._q_det, H,
-                                                            self.device)
+                self._barrier_hessian = BarrierHessian.make(self._volumetric.geometry, self._q_det, H, self.device)
             self._barrier_hessian.add_to(H, self._F_det, self._b_det, self._barrier_tets)
         for name, part in parts.items():
             self._add_part(H, name, part)

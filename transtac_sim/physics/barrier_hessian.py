@@ -14,7 +14,9 @@ assembly of the integrand evaluated every tet's 100 blocks at 4 points and scatt
 at once outside the marked tets and adds its block atomically into the sum: by the kernel times there, about 0.1 ms or
 less; the GPU's work per Newton iteration 0.94-0.97x (BENCHMARKS.md ``fem_barrier_hessian_gpu``). On a GPU the order
 of two marked tets' adds into a shared block varies from run to run (round-off in the last bits, as the CG's sums);
-Warp's CPU runs the threads in one order. The set-up (``make``) is made the first time the barrier acts.
+Warp's CPU runs the threads in one order. The set-up (``make``) is made the first time the barrier acts, from the
+volumetric Hessian's tet geometry (volumetric_hessian.py ``TetGeometry``: 11 instead of 59 ms under cProfile on
+press_slide, BENCHMARKS.md ``fem_steady_state_gpu``).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.elasticity import cofactor, cofactor_delta
 from transtac_sim.physics.sparse_product import block_index
-from transtac_sim.physics.volumetric_hessian import barycentric_gradients, element_node_layout
+from transtac_sim.physics.volumetric_hessian import TetGeometry
 
 _f = wp.float64
 
@@ -92,7 +94,7 @@ class BarrierHessian:
     (1/mm) and volumes (mm^3), the check points (barycentric) and weights (fractions of the volume), and where each
     tet's blocks go in the summed matrix."""
 
-    layout: wp.array  # (K,) vec2i: local node -> (i, j), see volumetric_hessian.element_node_layout
+    layout: wp.array  # (K,) vec2i: local node -> (i, j), see volumetric_hessian.TetGeometry
     lam_grad: wp.array  # (tets, 4) vec3d
     volume: wp.array  # (tets,) float64
     points: wp.array  # (Q,) vec4d
@@ -101,20 +103,20 @@ class BarrierHessian:
     slots: wp.array  # (tets, K K) int: the sum's block of tet t's nodes (a, b) at [t, a K + b]
 
     @staticmethod
-    def make(space, vertices_mm: np.ndarray, tets: np.ndarray, quadrature, total: BsrMatrix, device) -> BarrierHessian:
-        """``space``: the P1 or P2 warp.fem space of the mesh ``vertices_mm``, ``tets`` (positively oriented, as the
-        solver keeps them); ``quadrature``: the barrier's regular quadrature on its cells (whose point t Q + q is tet
-        t's q-th, as in ``barrier_state_form``'s arrays); ``total``: a matrix with the sum's sparsity (every pair of
-        nodes of a tet)."""
-        element_nodes, layout = element_node_layout(space, vertices_mm, tets)
-        lam_grad, volume = barycentric_gradients(vertices_mm, tets)
+    def make(geometry: TetGeometry, quadrature, total: BsrMatrix, device) -> BarrierHessian:
+        """``geometry``: the mesh's tets (volumetric_hessian.py ``TetGeometry``, the volumetric Hessian's); ``quadrature``:
+        the barrier's regular quadrature on its cells (whose point t Q + q is tet t's q-th, as in
+        ``barrier_state_form``'s arrays); ``total``: a matrix with the sum's sparsity (every pair of nodes of a tet)."""
+        element_nodes, layout, lam_grad, volume = geometry.element_nodes, geometry.layout, geometry.lam_grad, \
+            geometry.volume
+        tet_count = len(element_nodes)
         reference = np.asarray(quadrature.points, dtype=np.float64)  # (Q, 3): barycentric coordinates 1-3
         points = np.concatenate([1.0 - reference.sum(axis=1, keepdims=True), reference], axis=1)
         weights = np.asarray(quadrature.weights, dtype=np.float64)
-        if quadrature.total_point_count() != len(tets) * len(weights):
-            raise ValueError(f"{quadrature.total_point_count()} check points for {len(tets)} tets of {len(weights)}")
+        if quadrature.total_point_count() != tet_count * len(weights):
+            raise ValueError(f"{quadrature.total_point_count()} check points for {tet_count} tets of {len(weights)}")
         K = element_nodes.shape[1]
-        slots = wp.empty((len(tets), K * K), dtype=int, device=device)  # on the device: 21,890 x 100 on press_slide
+        slots = wp.empty((tet_count, K * K), dtype=int, device=device)  # on the device: 21,890 x 100 on press_slide
         wp.launch(_find_slots, dim=slots.shape, device=device,
                   inputs=[total.offsets, total.row_counts, total.columns,
                           wp.array(element_nodes.astype(np.int32), dtype=int, device=device), slots])

@@ -75,6 +75,25 @@ def _add_gathered(targets: wp.array(dtype=int), offsets: wp.array(dtype=int), so
 
 
 @dataclass(frozen=True)
+class TetGeometry:
+    """A mesh's tets as the tet-by-tet Hessians (this one's and barrier_hessian.py's) see them, made once per mesh
+    (``of``; host arrays): each tet's nodes in the P1 or P2 warp.fem space (tets, 4 or 10) and their local layout (per
+    local node (i, j): the vertex i where i = j, else the midpoint of edge (i, j)), the gradients of its barycentric
+    coordinates (tets, 4, 3; 1/mm) and its volume (mm^3)."""
+
+    element_nodes: np.ndarray
+    layout: list[tuple[int, int]]
+    lam_grad: np.ndarray
+    volume: np.ndarray
+
+    @staticmethod
+    def of(space, vertices_mm: np.ndarray, tets: np.ndarray) -> TetGeometry:
+        """``space``: the P1 or P2 warp.fem space of the mesh ``vertices_mm``, ``tets`` (positively oriented, as the
+        solver keeps them)."""
+        return TetGeometry(*element_node_layout(space, vertices_mm, tets), *barycentric_gradients(vertices_mm, tets))
+
+
+@dataclass(frozen=True)
 class VolumetricHessian:
     """What the tet-by-tet assembly needs, made once per mesh (``make``): each tet's coupled nodes and their basis
     gradients at the centroid (1/mm), its volume (mm^3), and where its blocks go in the summed matrix."""
@@ -86,13 +105,14 @@ class VolumetricHessian:
     offsets: wp.array  # per receiving block, its range in ``sources``
     sources: wp.array  # indices into the per-tet blocks
     blocks: wp.array  # (tets K K) mat33d work space
+    geometry: TetGeometry  # what it was made from (the barrier's Hessian is made from it too, barrier_hessian.py)
 
     @staticmethod
-    def make(space, vertices_mm: np.ndarray, tets: np.ndarray, total: BsrMatrix, device) -> VolumetricHessian:
-        """``space``: the P1 or P2 warp.fem space of the mesh ``vertices_mm``, ``tets`` (positively oriented, as the
-        solver keeps them); ``total``: a matrix with the sum's sparsity (every pair of nodes of a tet)."""
-        element_nodes, layout = element_node_layout(space, vertices_mm, tets)
-        lam_grad, volume = barycentric_gradients(vertices_mm, tets)
+    def make(geometry: TetGeometry, total: BsrMatrix, device) -> VolumetricHessian:
+        """``geometry``: the mesh's tets (``TetGeometry.of``); ``total``: a matrix with the sum's sparsity (every pair
+        of nodes of a tet)."""
+        element_nodes, layout, lam_grad, volume = geometry.element_nodes, geometry.layout, geometry.lam_grad, \
+            geometry.volume
         coupled = [local for local, (i, j) in enumerate(layout) if len(layout) == 4 or i != j]
         nodes = element_nodes[:, coupled]
         grads = np.stack([lam_grad[:, i] + (lam_grad[:, j] if j != i else 0.0) for i, j in
@@ -109,7 +129,8 @@ class VolumetricHessian:
             nodes=arr(nodes.astype(np.int32), int), grads=arr(grads, wp.vec3d), volume=arr(volume, wp.float64),
             targets=arr(targets.astype(np.int32), int),
             offsets=arr(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), int),
-            sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(slot), dtype=wp.mat33d, device=device))
+            sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(slot), dtype=wp.mat33d, device=device),
+            geometry=geometry)
 
     def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: int,
                barrier_tets: wp.array) -> None:
