@@ -593,14 +593,16 @@ def test_contact_outside_the_indenters_box_makes_no_query():
     np.testing.assert_array_equal(solver._gradient(ind).numpy().copy(), solver._gradient(everywhere).numpy())
 
 
+@pytest.mark.parametrize("device", DEVICES)  # the GPU writes a block per thread, the CPU a tet's blocks per thread
 @pytest.mark.parametrize("degree", [1, 2])
-def test_volumetric_hessian_tet_by_tet_equals_warp_fems_assembly(degree):
+def test_volumetric_hessian_tet_by_tet_equals_warp_fems_assembly(degree, device):
     """volumetric_hessian.py's blocks (only the nodes whose basis gradient at the centroid is not zero) equal warp.fem's
     assembly of the integrand over all node pairs: exact, clamped (with the barrier's halved bound in some tets) and
     Gauss-Newton, on a pressed P1 and P2 block."""
-    solver, ind = _pressed_solver(degree)
+    solver, ind = _pressed_solver(degree, device=device)
     rng = np.random.default_rng(2)
-    solver._barrier_tets.assign(wp.array((rng.random(len(solver.tets)) < 0.3).astype(np.int32), dtype=wp.int32))
+    solver._barrier_tets.assign(wp.array((rng.random(len(solver.tets)) < 0.3).astype(np.int32), dtype=wp.int32,
+                                         device=device))
     total = wp.sparse.bsr_copy(solver._deviatoric().H)
     volumetric = VolumetricHessian.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), total,
                                         solver.device)

@@ -13,8 +13,11 @@ vertices' barycentric gradients: 36 blocks a tet (P1: its 4 vertices, 16 blocks)
 warp.fem's generic assembly evaluated the integrand once per pair of the tet's 10 nodes, for blocks most of which are
 zero: with this assembly instead, a Newton Hessian of the tiny press fixture (3267 tets) took 35 instead of 68 ms on the
 2-core CPU (scripts/fem_phase_profile.py, BENCHMARKS.md ``fem_host_path_cpu``). Here one
-thread per tet writes its blocks, then one thread per receiving block of the sum adds them in a fixed order (a list
-made once): the same sums in a deterministic order on every device.
+thread per tet computes F, cof(F) and s_h (``_tet_states``), one thread per block writes the block on a GPU, one per
+tet on the CPU (``_tet_blocks``), then one thread per receiving block of the sum adds them in a fixed order (a list made once): the same sums in a
+deterministic order on every device. With one thread per tet writing all its blocks, the GPU ran 22k threads on
+press_slide, each writing 2.6 kB of blocks that its neighbours' lay 2.6 kB away (BENCHMARKS.md
+``fem_tet_blocks_gpu``).
 """
 
 from __future__ import annotations
@@ -31,14 +34,14 @@ _f = wp.float64
 
 
 @wp.kernel(enable_backward=False)
-def _tet_blocks(u: wp.array(dtype=wp.vec3d), nodes: wp.array2d(dtype=int), grads: wp.array2d(dtype=wp.vec3d),
-                volume: wp.array(dtype=wp.float64), params: wp.array(dtype=wp.vec2d), geometric: wp.float64,
-                clamp: int, barrier_tets: wp.array(dtype=wp.int32), blocks: wp.array(dtype=wp.mat33d)):
-    """blocks[(t K + a) K + b]: the volumetric Hessian block of tet t's coupled nodes a, b (K of them)."""
+def _tet_states(u: wp.array(dtype=wp.vec3d), nodes: wp.array2d(dtype=int), grads: wp.array2d(dtype=wp.vec3d),
+                params: wp.array(dtype=wp.vec2d), geometric: wp.float64, clamp: int,
+                barrier_tets: wp.array(dtype=wp.int32), F_tet: wp.array(dtype=wp.mat33d),
+                cof_tet: wp.array(dtype=wp.mat33d), s_tet: wp.array(dtype=wp.float64)):
+    """Tet t's F, cof(F) and s_h at its centroid (the blocks' common factors, ``_tet_blocks``)."""
     t = wp.tid()
-    K = nodes.shape[1]
     F = wp.identity(n=3, dtype=wp.float64)
-    for a in range(K):
+    for a in range(nodes.shape[1]):
         F += wp.outer(u[nodes[t, a]], grads[t, a])
     mu = params[t][0]
     lam = params[t][1]
@@ -48,19 +51,34 @@ def _tet_blocks(u: wp.array(dtype=wp.vec3d), nodes: wp.array2d(dtype=int), grads
         if barrier_tets[t] != 0:
             bound = _f(0.5) * bound
         p = wp.clamp(p, -bound, bound)
-    s = geometric * p
-    cof = cofactor(F)
+    F_tet[t] = F
+    cof_tet[t] = cofactor(F)
+    s_tet[t] = geometric * p
+
+
+@wp.kernel(enable_backward=False)
+def _tet_blocks(grads: wp.array2d(dtype=wp.vec3d), volume: wp.array(dtype=wp.float64), params: wp.array(dtype=wp.vec2d),
+                F_tet: wp.array(dtype=wp.mat33d), cof_tet: wp.array(dtype=wp.mat33d), s_tet: wp.array(dtype=wp.float64),
+                per_thread: int, blocks: wp.array(dtype=wp.mat33d)):
+    """blocks[(t K + a) K + b]: the volumetric Hessian block of tet t's coupled nodes a, b (K of them), ``per_thread``
+    consecutive blocks of a tet per thread (on a GPU 1: neighbouring threads write neighbouring blocks)."""
+    t, chunk = wp.tid()
+    K = grads.shape[1]
+    F = F_tet[t]
+    cof = cof_tet[t]
+    s = s_tet[t]
+    lam = params[t][1]
     V = volume[t]
-    for a in range(K):
+    for pair in range(chunk * per_thread, (chunk + 1) * per_thread):
+        a = pair // K
         ga = grads[t, a]
+        gb = grads[t, pair - a * K]
         ba = cof * ga
-        for b in range(K):
-            gb = grads[t, b]
-            bb = cof * gb
-            c0 = lam * bb[0] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(1.0), _f(0.0), _f(0.0)), gb)) * ga)
-            c1 = lam * bb[1] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(1.0), _f(0.0)), gb)) * ga)
-            c2 = lam * bb[2] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(0.0), _f(1.0)), gb)) * ga)
-            blocks[(t * K + a) * K + b] = V * wp.matrix_from_cols(c0, c1, c2)
+        bb = cof * gb
+        c0 = lam * bb[0] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(1.0), _f(0.0), _f(0.0)), gb)) * ga)
+        c1 = lam * bb[1] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(1.0), _f(0.0)), gb)) * ga)
+        c2 = lam * bb[2] * ba + s * (cofactor_delta(F, wp.outer(wp.vec3d(_f(0.0), _f(0.0), _f(1.0)), gb)) * ga)
+        blocks[t * K * K + pair] = V * wp.matrix_from_cols(c0, c1, c2)
 
 
 @wp.kernel(enable_backward=False)
@@ -105,6 +123,9 @@ class VolumetricHessian:
     offsets: wp.array  # per receiving block, its range in ``sources``
     sources: wp.array  # indices into the per-tet blocks
     blocks: wp.array  # (tets K K) mat33d work space
+    F_tet: wp.array  # (tets,) mat33d work space: F at the centroid, cof(F), s_h (``_tet_states``)
+    cof_tet: wp.array
+    s_tet: wp.array
     geometry: TetGeometry  # what it was made from (the barrier's Hessian is made from it too, barrier_hessian.py)
 
     @staticmethod
@@ -130,15 +151,22 @@ class VolumetricHessian:
             targets=arr(targets.astype(np.int32), int),
             offsets=arr(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32), int),
             sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(slot), dtype=wp.mat33d, device=device),
-            geometry=geometry)
+            F_tet=wp.empty(len(nodes), dtype=wp.mat33d, device=device),
+            cof_tet=wp.empty(len(nodes), dtype=wp.mat33d, device=device),
+            s_tet=wp.empty(len(nodes), dtype=wp.float64, device=device), geometry=geometry)
 
     def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: int,
                barrier_tets: wp.array) -> None:
         """Adds the volumetric Hessian at displacement ``u`` (dof values, mm) to ``total``'s blocks, in place."""
         device = total.values.device
-        wp.launch(_tet_blocks, dim=self.nodes.shape[0], device=device,
-                  inputs=[u, self.nodes, self.grads, self.volume, params, wp.float64(geometric), int(clamp),
-                          barrier_tets, self.blocks])
+        tets, K = self.nodes.shape
+        wp.launch(_tet_states, dim=tets, device=device,
+                  inputs=[u, self.nodes, self.grads, params, wp.float64(geometric), int(clamp), barrier_tets,
+                          self.F_tet, self.cof_tet, self.s_tet])
+        per_thread = 1 if device.is_cuda else K * K  # Warp's CPU runs the threads one after another
+        wp.launch(_tet_blocks, dim=(tets, K * K // per_thread), device=device,
+                  inputs=[self.grads, self.volume, params, self.F_tet, self.cof_tet, self.s_tet, per_thread,
+                          self.blocks])
         wp.launch(_add_gathered, dim=len(self.targets), device=device,
                   inputs=[self.targets, self.offsets, self.sources, self.blocks, total.values])
 
