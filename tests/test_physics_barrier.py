@@ -19,7 +19,7 @@ from transtac_sim.physics import (
     SolverSettings,
     elasticity,
 )
-from transtac_sim.physics.barrier_hessian import BarrierHessian
+from transtac_sim.physics.barrier_terms import BarrierCheckPoints, BarrierHessian
 from transtac_sim.physics.box_mesh import box_tet_mesh
 from transtac_sim.physics.elasticity import cofactor, cofactor_delta
 from transtac_sim.physics.host_factorisation import bsr_to_scipy
@@ -106,14 +106,15 @@ def _squeezed_along_x(solver: QuasiStaticSolver, noise: float = 0.0) -> np.ndarr
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("degree", [1, 2])
 def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
-    """barrier_hessian.py's blocks, added only in the tets where the barrier acts, equal warp.fem's assembly of the
+    """barrier_terms.py's blocks, added only in the tets where the barrier acts, equal warp.fem's assembly of the
     integrand over every tet: exact, clamped and Gauss-Newton, at a state squeezed to det F 0.05 at one end of the
     block and 0.5 at the other (the barrier acts in some tets, not all)."""
     solver = _solver(SolverSettings(degree=degree), device)
     solver.u.dof_values.assign(wp.array(_squeezed_along_x(solver, 0.002), dtype=wp.vec3d, device=device))
     total = wp.sparse.bsr_copy(solver._deviatoric().H)
-    geometry = TetGeometry.of(solver._space, solver.vertices_mm, solver.tets)
-    barrier = BarrierHessian.make(geometry, solver._q_det, total, solver.device)
+    check = BarrierCheckPoints.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), solver._q_det,
+                                    solver.device)
+    barrier = BarrierHessian.make(check, total, solver.device)
     values = {"F_qp": solver._F_det, "b_qp": solver._b_det}
     for geometric, clamp in ((1.0, elasticity.EXACT), (1.0, elasticity.CLAMPED), (0.0, elasticity.CLAMPED)):
         solver._barrier_tets.zero_()
@@ -146,22 +147,38 @@ def test_summed_hessian_adds_the_barrier_where_it_acts():
     assert barrier.nnz > 0 and abs(summed[0] - summed[1] - barrier).max() <= 1e-11 * abs(barrier).max()
 
 
+@fem.integrand
+def _barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp.array(dtype=wp.vec2d),
+                           stiffness: wp.float64, j_hat: wp.float64):
+    """The barrier's gradient integrand (barrier_terms.py's docstring), for warp.fem's integration over every tet."""
+    F = elasticity.deformation_gradient(fem.grad(u, s))
+    db = elasticity.det_barrier(wp.determinant(F), j_hat)[1]
+    return stiffness * params[s.element_index][0] * db * wp.ddot(cofactor(F), fem.grad(v, s))
+
+
 @pytest.mark.parametrize("device", DEVICES)
-def test_barrier_gradient_is_zero_where_its_energy_is(device):
-    """``barrier_gradient_form`` returns 0 on the device where the barrier's energy it is given is 0 (a GPU launches it
-    without reading that energy, assembly.py ``_gradient``), and the barrier's gradient where it is not."""
-    solver = _solver(SolverSettings(), device)
-    solver.u.dof_values.assign(wp.array(_compressed(solver, 0.08), dtype=wp.vec3d, device=device))
-    solver._gradient(_far_away(solver))
-    assert solver._barrier_acts
-
-    def gradient(energy: wp.array) -> np.ndarray:
-        return fem.integrate(elasticity.barrier_gradient_form, quadrature=solver._q_det,
-                             fields={"u": solver.u, "v": solver._test},
-                             values=solver._barrier_values() | {"energy": energy}, output_dtype=wp.vec3d).numpy()
-
-    assert np.abs(gradient(solver._barrier_sum)).max() > 0.0
-    assert not gradient(wp.zeros(1, dtype=wp.float64, device=device)).any()
+@pytest.mark.parametrize("degree", [1, 2])
+def test_barrier_gradient_in_its_tets_equals_warp_fems_integration(device, degree):
+    """barrier_terms.py's gradient, added only in the tets where some det F is below j_hat, equals warp.fem's
+    integration of the integrand over every tet's check points, at a state squeezed to det F 0.05 at one end of the
+    block and 0.5 at the other (the barrier acts in some tets, not all); above the threshold everywhere it adds
+    nothing."""
+    solver = _solver(SolverSettings(degree=degree), device)
+    check = BarrierCheckPoints.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), solver._q_det,
+                                    solver.device)
+    s = solver.settings
+    for u, acts in ((_squeezed_along_x(solver, 0.002), True), (0.1 * _squeezed_along_x(solver), False)):
+        solver.u.dof_values.assign(wp.array(u, dtype=wp.vec3d, device=device))
+        expected = fem.integrate(_barrier_gradient_form, quadrature=solver._q_det,
+                                 fields={"u": solver.u, "v": solver._test},
+                                 values=solver._barrier_values(), output_dtype=wp.vec3d).numpy()
+        g = wp.zeros(len(u), dtype=wp.vec3d, device=device)
+        check.add_gradient_to(g, solver.u.dof_values, solver._params, s.barrier_stiffness, s.barrier_det_f)
+        if acts:
+            assert np.abs(expected).max() > 0.0
+            np.testing.assert_allclose(g.numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+        else:
+            assert not expected.any() and not g.numpy().any()
 
 
 @pytest.mark.parametrize("device", DEVICES)

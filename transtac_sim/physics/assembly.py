@@ -8,7 +8,7 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 - the contact Hessian is assembled into a kept matrix whose sparsity does not change (``_assemble``: warp.fem's mapped
   construction, values only after the first assembly) and added into one kept matrix with the deviatoric part's
   sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point per tet) is added to
-  it tet by tet (volumetric_hessian.py), the barrier's in the tets where it acts (barrier_hessian.py);
+  it tet by tet (volumetric_hessian.py), the barrier's in the tets where it acts (barrier_terms.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0; on a GPU
   the gradient's integrand returns 0 on the device, so that the energy need not be read first);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the
@@ -33,7 +33,7 @@ import warp.fem as fem
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
-from transtac_sim.physics.barrier_hessian import BarrierHessian
+from transtac_sim.physics.barrier_terms import BarrierCheckPoints, BarrierHessian
 from transtac_sim.physics.definite_cg import add_dot
 from transtac_sim.physics.reductions import extremes, launch_extremes, negated_free, read_extremes
 from transtac_sim.physics.sparse_product import block_row_operator
@@ -193,9 +193,10 @@ class Assembly:
         self._graphs.run(("elastic_gradient", u.dof_values.ptr), (u,), self._elastic_gradient_terms)
         self._barrier_energy = None
         if self.settings.barrier_det_f > 0.0 and (self.device.is_cuda or self._barrier_acts):
-            self._graphs.run(("barrier_gradient", u.dof_values.ptr), (u,), lambda: fem.integrate(
-                elasticity.barrier_gradient_form, quadrature=self._q_det, fields={"u": u, "v": self._test},
-                values=self._barrier_values() | {"energy": self._barrier_sum}, output=self._g, add=True))
+            check = self._barrier_check_points()
+            s = self.settings
+            self._graphs.run(("barrier_gradient", u.dof_values.ptr), (u,), lambda: check.add_gradient_to(
+                self._g, u.dof_values, self._params, s.barrier_stiffness, s.barrier_det_f))
         self._contact_stale = None
         if ind.count:
             self._graphs.run(("contact_gradient", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind),
@@ -257,7 +258,7 @@ class Assembly:
 
         The deviatoric part mu grad du : grad v does not depend on u: it is assembled once and is the sum's start;
         the volumetric part is added tet by tet (volumetric_hessian.py), the barrier's only in the tets where it acts
-        (barrier_hessian.py), the contact part through its blocks' places in the sum (``_sum_slots``), one launch
+        (barrier_terms.py), the contact part through its blocks' places in the sum (``_sum_slots``), one launch
         instead of a sparse matrix sum."""
         subset = self._contact_subset(ind) if ind.count else None
         key = ("hessian", self.u.dof_values.ptr, id(ind), float(ind.stiffness), float(geometric), int(clamp),
@@ -285,15 +286,26 @@ class Assembly:
         H = self._H
         wp.copy(H.values, H_dev.values, count=H_dev.nnz)
         if self._volumetric is None:
-            self._volumetric = VolumetricHessian.make(TetGeometry.of(self._space, self.vertices_mm, self.tets), H,
-                                                      self.device)
+            self._volumetric = VolumetricHessian.make(self._tets(), H, self.device)
         self._volumetric.add_to(H, self.u.dof_values, self._params, geometric, clamp, self._barrier_tets)
-        if self._barrier_acts:  # in the tets it marked (barrier_hessian.py)
+        if self._barrier_acts:  # in the tets it marked (barrier_terms.py)
             if self._barrier_hessian is None:
-                self._barrier_hessian = BarrierHessian.make(self._volumetric.geometry, self._q_det, H, self.device)
+                self._barrier_hessian = BarrierHessian.make(self._barrier_check_points(), H, self.device)
             self._barrier_hessian.add_to(H, self._F_det, self._b_det, self._barrier_tets)
         for name, part in parts.items():
             self._add_part(H, name, part)
+
+    def _tets(self) -> TetGeometry:
+        """The tets as the tet-by-tet terms see them (volumetric_hessian.py), made on first use."""
+        if self._tet_geometry is None:
+            self._tet_geometry = TetGeometry.of(self._space, self.vertices_mm, self.tets)
+        return self._tet_geometry
+
+    def _barrier_check_points(self) -> BarrierCheckPoints:
+        """The barrier's tets and check points on the device (barrier_terms.py), made on first use."""
+        if self._barrier_points is None:
+            self._barrier_points = BarrierCheckPoints.make(self._tets(), self._q_det, self.device)
+        return self._barrier_points
 
     def _add_part(self, H: BsrMatrix, name: str, part: BsrMatrix) -> None:
         """H's blocks += the part ``name``'s, each at its place in H (``_sum_slots``; one launch)."""

@@ -11,7 +11,8 @@ not lock, while the fully integrated mu-term keeps the stiffness matrix free of 
 
 Gradient (N):   mu F : grad v  +  s cof(F) : grad v,          s = lam (J - alpha)
 Hessian:        mu grad du : grad v + lam (cof F : grad du)(cof F : grad v) + s_h dcof(F)[grad du] : grad v
-                (its volumetric part assembled tet by tet in volumetric_hessian.py; the barrier's: barrier_hessian.py)
+                (its volumetric part assembled tet by tet in volumetric_hessian.py; the barrier's gradient and
+                Hessian: barrier_terms.py)
 
 with cof(F) = dJ/dF = [f1 x f2, f2 x f0, f0 x f1] (columns f_i of F). ``s_h`` is ``geometric`` times
 either ``s`` itself (the exact Hessian) or, with ``clamp``, ``s`` clamped to [-mu/sigma_max, mu/sigma_max]
@@ -151,22 +152,10 @@ def barrier_energy_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.v
 
 
 @fem.integrand
-def barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp.array(dtype=wp.vec2d),
-                          stiffness: wp.float64, j_hat: wp.float64, energy: wp.array(dtype=wp.float64)):
-    """The barrier's gradient; 0 at once where its ``energy`` (summed before, on the device) is 0: every det F is
-    above j_hat, so that a GPU launches it without reading the energy first (assembly.py ``_gradient``)."""
-    if energy[0] == _f(0.0):
-        return _f(0.0)
-    F = deformation_gradient(fem.grad(u, s))
-    db = det_barrier(wp.determinant(F), j_hat)[1]
-    return stiffness * params[s.element_index][0] * db * wp.ddot(cofactor(F), fem.grad(v, s))
-
-
-@fem.integrand
 def barrier_state_form(s: fem.Sample, u: fem.Field, params: wp.array(dtype=wp.vec2d), stiffness: wp.float64,
                        j_hat: wp.float64, geometric: wp.float64, clamp: int, F_qp: wp.array(dtype=wp.mat33d),
                        b_qp: wp.array(dtype=wp.vec2d), barrier_tets: wp.array(dtype=wp.int32)):
-    """Stores F and kappa (geometric b', b'') at each check point for the Hessian (barrier_hessian.py), and marks the
+    """Stores F and kappa (geometric b', b'') at each check point for the Hessian (barrier_terms.py), and marks the
     tets where the barrier acts in ``barrier_tets`` (zeroed by the caller); with ``clamp`` kappa b' is clamped to
     mu/(2 sigma_max) (see the module's docstring)."""
     F = deformation_gradient(fem.grad(u, s))

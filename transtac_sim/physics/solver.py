@@ -150,8 +150,10 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self._graphs = GraphCache(self.device)  # energy, det F, gradient and Hessian as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
+        self._tet_geometry = None  # the tets as the tet-by-tet terms see them (volumetric_hessian.py), on first use
         self._volumetric = None  # the tet-by-tet volumetric Hessian's set-up (volumetric_hessian.py), made on first use
-        self._barrier_hessian = None  # the barrier Hessian's set-up (barrier_hessian.py), made on first use
+        self._barrier_points = None  # the barrier's tets and check points on the device (barrier_terms.py), first use
+        self._barrier_hessian = None  # the barrier Hessian's block places (barrier_terms.py), the first time it acts
         self._H = None  # the summed Hessian (``_hessian``), and each part's places in it (``_sum_slots``)
         self._H_slots: dict = {}
         self._increment: tuple[wp.array, np.ndarray, float] | None = None  # last (du, pose step, penetration)

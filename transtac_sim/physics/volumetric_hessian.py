@@ -12,11 +12,11 @@ vertices' barycentric gradients: 36 blocks a tet (P1: its 4 vertices, 16 blocks)
 
 warp.fem's generic assembly evaluated the integrand once per pair of the tet's 10 nodes, for blocks most of which are
 zero: with this assembly instead, a Newton Hessian of the tiny press fixture (3267 tets) took 35 instead of 68 ms on the
-2-core CPU (scripts/fem_phase_profile.py, BENCHMARKS.md ``fem_host_path_cpu``). Here one
-thread per tet computes F, cof(F) and s_h (``_tet_states``), one thread per block writes the block on a GPU, one per
-tet on the CPU (``_tet_blocks``), then one thread per receiving block of the sum adds them in a fixed order (a list made once): the same sums in a
-deterministic order on every device. With one thread per tet writing all its blocks, the GPU ran 22k threads on
-press_slide, each writing 2.6 kB of blocks that its neighbours' lay 2.6 kB away (BENCHMARKS.md
+2-core CPU (scripts/fem_phase_profile.py, BENCHMARKS.md ``fem_host_path_cpu``). Here one thread per tet computes F,
+cof(F) and s_h (``_tet_states``), one thread per block writes the block on a GPU, one per tet on the CPU
+(``_tet_blocks``), then one thread per receiving block of the sum adds them in a fixed order (a list made once): the
+same sums in a deterministic order on every device. With one thread per tet writing all its blocks, the GPU ran 22k
+threads on press_slide, each writing 2.6 kB of blocks that its neighbours' lay 2.6 kB away (BENCHMARKS.md
 ``fem_tet_blocks_gpu``).
 """
 
@@ -94,7 +94,7 @@ def _add_gathered(targets: wp.array(dtype=int), offsets: wp.array(dtype=int), so
 
 @dataclass(frozen=True)
 class TetGeometry:
-    """A mesh's tets as the tet-by-tet Hessians (this one's and barrier_hessian.py's) see them, made once per mesh
+    """A mesh's tets as the tet-by-tet Hessians (this one's and barrier_terms.py's) see them, made once per mesh
     (``of``; host arrays): each tet's nodes in the P1 or P2 warp.fem space (tets, 4 or 10) and their local layout (per
     local node (i, j): the vertex i where i = j, else the midpoint of edge (i, j)), the gradients of its barycentric
     coordinates (tets, 4, 3; 1/mm) and its volume (mm^3)."""
@@ -126,7 +126,6 @@ class VolumetricHessian:
     F_tet: wp.array  # (tets,) mat33d work space: F at the centroid, cof(F), s_h (``_tet_states``)
     cof_tet: wp.array
     s_tet: wp.array
-    geometry: TetGeometry  # what it was made from (the barrier's Hessian is made from it too, barrier_hessian.py)
 
     @staticmethod
     def make(geometry: TetGeometry, total: BsrMatrix, device) -> VolumetricHessian:
@@ -153,7 +152,7 @@ class VolumetricHessian:
             sources=arr(order.astype(np.int32), int), blocks=wp.empty(len(slot), dtype=wp.mat33d, device=device),
             F_tet=wp.empty(len(nodes), dtype=wp.mat33d, device=device),
             cof_tet=wp.empty(len(nodes), dtype=wp.mat33d, device=device),
-            s_tet=wp.empty(len(nodes), dtype=wp.float64, device=device), geometry=geometry)
+            s_tet=wp.empty(len(nodes), dtype=wp.float64, device=device))
 
     def add_to(self, total: BsrMatrix, u: wp.array, params: wp.array, geometric: float, clamp: int,
                barrier_tets: wp.array) -> None:
