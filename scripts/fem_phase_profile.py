@@ -107,6 +107,7 @@ class PhaseClock:
         self.linear_iterations: list[int] = []
         self.linear_solver: LinearSolver | None = None
         self._counts_before: dict[str, int] = {}  # the LinearSolver's counts at the last reset
+        self._counts_of: LinearSolver | None = None  # the LinearSolver they are of (a later pass has its own)
         self._stack: list[list] = []  # [name, start, child seconds]
 
     def wrap(self, cls, name: str):
@@ -139,10 +140,14 @@ class PhaseClock:
         self.calls.clear()
         self.linear_iterations.clear()
         self._counts_before = {name: getattr(self.linear_solver, name) for name in COUNTS} if self.linear_solver else {}
+        self._counts_of = self.linear_solver
 
     def count(self, name: str) -> int:
-        """One of the LinearSolver's ``COUNTS`` since the last reset."""
-        return getattr(self.linear_solver, name) - self._counts_before.get(name, 0) if self.linear_solver else 0
+        """One of the LinearSolver's ``COUNTS`` since the last reset (all of a solver made after it, ``--passes``)."""
+        if not self.linear_solver:
+            return 0
+        before = self._counts_before if self.linear_solver is self._counts_of else {}
+        return getattr(self.linear_solver, name) - before.get(name, 0)
 
 
 def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
@@ -199,6 +204,9 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                           press_lag_move_ratio, contact_prediction)
     step_solutions = solver_variants.keep_step_solutions() if save_step_solutions else None
     penetration_errors: list[float] = []
+    if passes > 1 and (oracle_lag or save_step_solutions):
+        raise typer.BadParameter("--oracle-lag and --save-step-solutions follow one solver's load steps: "
+                                 "use --passes 1")
     if oracle_lag_part != "both" and not oracle_lag:
         raise typer.BadParameter("--oracle-lag-part takes one part of a recorded lag: give --oracle-lag FILE too")
     if oracle_lag:
@@ -263,7 +271,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
 
     try:
         for n in range(passes):
-            for lst in (frame_seconds, frame_iterations, markers):  # the figures are the last pass's
+            for lst in (frame_seconds, frame_iterations, markers, failures):  # the figures are the last pass's
                 lst.clear()
             if n == passes - 1 and not skip_first:
                 counting_from_here()
@@ -313,11 +321,11 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         print("the solver's own first friction lag per load step: its penetration max(g, 0) at the contact quadrature "
               "points against the recorded solution's, relative L2 difference: "
               + ", ".join(f"{e:.2f}" for e in penetration_errors))
-    if gpu_activity:
-        print_gpu_activity(activity, total)
-        return
     if profiler:
         pstats.Stats(profiler).sort_stats("tottime").print_stats(40)
+    if gpu_activity:
+        print_gpu_activity(activity, total)
+    if profiler or gpu_activity:
         return
     work = clock.linear_solver._work if clock.linear_solver else None
     print(f"device solves stopped at non-positive curvature: {clock.count('not_definite')}; host factorisations: "

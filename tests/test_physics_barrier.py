@@ -95,11 +95,12 @@ def _barrier_reference(solver: QuasiStaticSolver):
                                       values={"F_qp": solver._F_det, "b_qp": solver._b_det}, output_dtype=wp.float64))
 
 
-def _squeezed_along_x(solver: QuasiStaticSolver, noise: float = 0.0) -> np.ndarray:
+def _squeezed_along_x(solver: QuasiStaticSolver, noise: float = 0.0, mirrored: bool = False) -> np.ndarray:
     """Dof values squeezing the 2 mm block to det F 0.05 at x = 0 and 0.5 at x = 2 (the barrier acts in some tets, not
-    all), plus ``noise`` mm of a random field."""
+    all; ``mirrored``: 0.05 at x = 2 and 0.5 at x = 0), plus ``noise`` mm of a random field."""
     X = solver._space.node_positions().numpy()
-    u = X * np.array([0.0, 0.0, 1.0]) * (0.05 + 0.45 * X[:, :1] / 2.0 - 1.0)
+    x = 2.0 - X[:, :1] if mirrored else X[:, :1]
+    u = X * np.array([0.0, 0.0, 1.0]) * (0.05 + 0.45 * x / 2.0 - 1.0)
     return u + noise * np.random.default_rng(3).standard_normal(X.shape)
 
 
@@ -161,13 +162,14 @@ def _barrier_gradient_form(s: fem.Sample, u: fem.Field, v: fem.Field, params: wp
 def test_barrier_gradient_in_its_tets_equals_warp_fems_integration(device, degree):
     """barrier_terms.py's gradient, added only in the tets where some det F is below j_hat, equals warp.fem's
     integration of the integrand over every tet's check points, at a state squeezed to det F 0.05 at one end of the
-    block and 0.5 at the other (the barrier acts in some tets, not all); above the threshold everywhere it adds
-    nothing."""
+    block and 0.5 at the other, and at its mirror image (the barrier acts in some tets, not all, and in some only at
+    some of their check points, on either side); above the threshold everywhere it adds nothing."""
     solver = _solver(SolverSettings(degree=degree), device)
     check = BarrierCheckPoints.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), solver._q_det,
                                     solver.device)
     s = solver.settings
-    for u, acts in ((_squeezed_along_x(solver, 0.002), True), (0.1 * _squeezed_along_x(solver), False)):
+    for u, acts in ((_squeezed_along_x(solver, 0.002), True), (_squeezed_along_x(solver, 0.002, mirrored=True), True),
+                    (0.1 * _squeezed_along_x(solver), False)):
         solver.u.dof_values.assign(wp.array(u, dtype=wp.vec3d, device=device))
         expected = fem.integrate(_barrier_gradient_form, quadrature=solver._q_det,
                                  fields={"u": solver.u, "v": solver._test},
@@ -183,8 +185,8 @@ def test_barrier_gradient_in_its_tets_equals_warp_fems_integration(device, degre
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_barrier_is_inert_above_its_threshold(device):
-    """Above the threshold the barrier adds nothing: E and g as without it (on a GPU its gradient is launched anyway and
-    returns 0 on the device, its energy being 0)."""
+    """Above the threshold the barrier adds nothing: E and g as without it (on a GPU its gradient's kernel is launched
+    anyway and returns at once in every tet)."""
     on, off = _solver(SolverSettings(), device), _solver(SolverSettings(barrier_det_f=0.0), device)
     for s in (on, off):
         s.u.dof_values.assign(wp.array(_compressed(s, 0.8), dtype=wp.vec3d, device=device))

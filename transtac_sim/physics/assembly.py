@@ -10,7 +10,8 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   sparsity (``_hessian``), the one the linear solver receives; the volumetric Hessian (one point per tet) is added to
   it tet by tet (volumetric_hessian.py), the barrier's in the tets where it acts (barrier_terms.py);
 - the barrier's gradient and Hessian are skipped where every det F is above its threshold (its energy is 0; on a GPU
-  the gradient's integrand returns 0 on the device, so that the energy need not be read first);
+  the gradient's kernel returns at once in each tet whose check points all have det F >= j_hat, barrier_terms.py, so
+  that the energy need not be read first);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the
   largest penetration and max |u - u_lag| for friction's lag test are reduced there (reductions.py), and so are the
   contact Hessian's stiff points (with the
@@ -185,7 +186,8 @@ class Assembly:
         also stores there the contact state and the barrier's energy, which ``_hessian`` uses (``_barrier_acts``). The
         terms are added in the order of the energy (elastic, barrier, contact). On a GPU the launches are replayed as
         CUDA graphs (replay.py): the elastic terms with the barrier's energy summed alongside, the barrier's gradient
-        (0 at once where that energy is 0, on the device), then the contact state and gradient; nothing is read (the
+        (added only in the tets where some det F is below j_hat, found on the device; barrier_terms.py), then the
+        contact state and gradient; nothing is read (the
         caller may read the barrier's energy with its own read, ``barrier_energy_read``). On the CPU, where a read
         costs no wait, the energy is read first and the barrier's gradient launched only where it is not 0 (the usual
         case)."""

@@ -26,10 +26,11 @@ with s = geometric kappa b'(J) (clamped with ``clamp``). Outside the tets with s
   per Newton iteration 0.94-0.97x (BENCHMARKS.md ``fem_barrier_hessian_gpu``).
 
 On a GPU the order of two threads' adds into one entry varies from run to run (round-off in the last bits, as the CG's
-sums); Warp's CPU runs the threads in one order. The check points' set-up (``BarrierCheckPoints.make``) is made from the
-volumetric Hessian's tet geometry (volumetric_hessian.py ``TetGeometry``), the Hessian's block places the first time
-the barrier acts (``BarrierHessian.make``: 11 instead of 59 ms under cProfile on press_slide with that geometry shared,
-BENCHMARKS.md ``fem_steady_state_gpu``).
+sums); Warp's CPU runs the threads in one order. The check points (``BarrierCheckPoints.make``) are made from the
+solver's tet geometry (volumetric_hessian.py ``TetGeometry``, shared with the volumetric Hessian: computing it again
+had taken most of the barrier's set-up, 59 against 11 ms under cProfile on press_slide, BENCHMARKS.md
+``fem_steady_state_gpu``) at the first gradient on a GPU, the Hessian's block places the first time the barrier acts
+(``BarrierHessian.make``).
 """
 
 from __future__ import annotations

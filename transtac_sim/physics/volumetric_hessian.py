@@ -94,10 +94,10 @@ def _add_gathered(targets: wp.array(dtype=int), offsets: wp.array(dtype=int), so
 
 @dataclass(frozen=True)
 class TetGeometry:
-    """A mesh's tets as the tet-by-tet Hessians (this one's and barrier_terms.py's) see them, made once per mesh
-    (``of``; host arrays): each tet's nodes in the P1 or P2 warp.fem space (tets, 4 or 10) and their local layout (per
-    local node (i, j): the vertex i where i = j, else the midpoint of edge (i, j)), the gradients of its barycentric
-    coordinates (tets, 4, 3; 1/mm) and its volume (mm^3)."""
+    """A mesh's tets as the tet-by-tet terms (this module's Hessian, barrier_terms.py's gradient and Hessian) see them,
+    made once per mesh (``of``; host arrays): each tet's nodes in the P1 or P2 warp.fem space (tets, 4 or 10) and their
+    local layout (per local node (i, j): the vertex i where i = j, else the midpoint of edge (i, j)), the gradients of
+    its barycentric coordinates (tets, 4, 3; 1/mm) and its volume (mm^3)."""
 
     element_nodes: np.ndarray
     layout: list[tuple[int, int]]
