@@ -19,11 +19,10 @@ from transtac_sim.physics import (
     SolverSettings,
     elasticity,
 )
-from transtac_sim.physics.barrier_terms import BarrierCheckPoints, BarrierHessian
+from transtac_sim.physics.barrier_terms import BarrierHessian
 from transtac_sim.physics.box_mesh import box_tet_mesh
 from transtac_sim.physics.elasticity import cofactor, cofactor_delta
 from transtac_sim.physics.host_factorisation import bsr_to_scipy
-from transtac_sim.physics.volumetric_hessian import TetGeometry
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import fem_stability as fs  # noqa: E402
@@ -113,9 +112,7 @@ def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
     solver = _solver(SolverSettings(degree=degree), device)
     solver.u.dof_values.assign(wp.array(_squeezed_along_x(solver, 0.002), dtype=wp.vec3d, device=device))
     total = wp.sparse.bsr_copy(solver._deviatoric().H)
-    check = BarrierCheckPoints.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), solver._q_det,
-                                    solver.device)
-    barrier = BarrierHessian.make(check, total, solver.device)
+    barrier = BarrierHessian.make(solver._barrier_check_points(), total, solver.device)
     values = {"F_qp": solver._F_det, "b_qp": solver._b_det}
     for geometric, clamp in ((1.0, elasticity.EXACT), (1.0, elasticity.CLAMPED), (0.0, elasticity.CLAMPED)):
         solver._barrier_tets.zero_()
@@ -165,8 +162,7 @@ def test_barrier_gradient_in_its_tets_equals_warp_fems_integration(device, degre
     block and 0.5 at the other, and at its mirror image (the barrier acts in some tets, not all, and in some only at
     some of their check points, on either side); above the threshold everywhere it adds nothing."""
     solver = _solver(SolverSettings(degree=degree), device)
-    check = BarrierCheckPoints.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), solver._q_det,
-                                    solver.device)
+    check = solver._barrier_check_points()
     s = solver.settings
     for u, acts in ((_squeezed_along_x(solver, 0.002), True), (_squeezed_along_x(solver, 0.002, mirrored=True), True),
                     (0.1 * _squeezed_along_x(solver), False)):

@@ -31,7 +31,7 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.reductions import max_abs, negated_free_and_load, step_summary
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.sparse_product import block_row_operator
-from transtac_sim.physics.volumetric_hessian import TetGeometry, VolumetricHessian
+from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
 
@@ -604,8 +604,7 @@ def test_volumetric_hessian_tet_by_tet_equals_warp_fems_assembly(degree, device)
     solver._barrier_tets.assign(wp.array((rng.random(len(solver.tets)) < 0.3).astype(np.int32), dtype=wp.int32,
                                          device=device))
     total = wp.sparse.bsr_copy(solver._deviatoric().H)
-    volumetric = VolumetricHessian.make(TetGeometry.of(solver._space, solver.vertices_mm, solver.tets), total,
-                                        solver.device)
+    volumetric = VolumetricHessian.make(solver._tets(), total, solver.device)
     clamped = 0
     for geometric, clamp in ((1.0, False), (1.0, True), (0.0, True)):
         total.values.zero_()
