@@ -11,11 +11,12 @@ then:
    BENCHMARKS.md ``fem_cg_unrolled_gpu``, and the CPU's) and the CUDA one (``_block_rows_product``: 8 rows of 16
    lanes per group), and two layouts the solver does not use, each checked against the library's product first: the
    float32 blocks stored entry by entry (9 arrays, so that each of a row's 9 loads is one coalesced run) and the
-   vector gathered from a float32 copy (half the bytes per gathered entry), then both; then one whole iteration as
-   captured;
-2. the system solved from 0 at Newton's forcing tolerance (1e-2) and the tight one (1e-4) with each product and 1, 2
-   and 4 iterations per pass of the CG's conditional graph loop (``definite_cg.UNROLL``): iterations and the best of
-   three solves after a first one (which captures the graph); ``--rounds N`` runs these settings in turn N times.
+   vector gathered from a float32 copy (half the bytes per gathered entry), then both; then the other kernels and
+   one whole iteration as captured (all with the state's set 0, which stays going on);
+2. the system solved from 0 at Newton's forcing tolerance (1e-2) and the tight one (1e-4) with each product and 3
+   and 6 iterations per pass of the CG's conditional graph loop (``definite_cg.UNROLL``, a multiple of the state's 3
+   sets; 1, 2 and 4 before BENCHMARKS.md ``fem_cg_fused_gpu``): iterations and the best of three solves after a first
+   one (which captures the graph); ``--rounds N`` runs these settings in turn N times.
 
 Prints markdown tables. The machine's other load shows in the per-launch times; compare rows of one run.
 """
@@ -174,34 +175,37 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
 
     ws = work.cg
     p, q, r, z, x = (wp.clone(kept["rhs"]) for _ in range(5))
+    A.matvec(p, q, q, 1.0, 0.0)
     state = ws.state
-    values = np.zeros(definite_cg.STATE_SIZE)  # active, r.z = p.q = 1: every kernel does its work
-    values[[definite_cg.RZ, definite_cg.PQ, definite_cg.ACTIVE, definite_cg.MAXITER]] = (1.0, 1.0, 1.0, 1e9)
+    values = np.zeros(definite_cg.STATE_SIZE)  # set 0 going on, p . q = 1, a previous r . z: every kernel does its work
+    values[[definite_cg.ACTIVE, definite_cg.PQ, 2 * definite_cg.SET_SIZE + definite_cg.RZ, definite_cg.MAXITER]] = \
+        (1.0, 1.0, 1e-3, 1e9)
     state.assign(values)
-    basis = (coarse.basis, coarse.aggregate, coarse.values, coarse.restricted) if coarse else \
-        (ws.no_basis, ws.no_aggregate, ws.no_values, ws.no_values)
+    if coarse:
+        groups = (coarse.aggregates, coarse.members, coarse.starts, coarse.arm, coarse.free, coarse.restricted)
+        prolonged = (coarse.arm, coarse.free, coarse.aggregate, coarse.values)
+    else:
+        groups = ((n + coarse_space.AGGREGATE_THREADS - 1) // coarse_space.AGGREGATE_THREADS, ws.no_nodes,
+                  ws.no_nodes, ws.no_arms, ws.no_arms, ws.no_values)
+        prolonged = (ws.no_arms, ws.no_arms, ws.no_nodes, ws.no_values)
 
-    def tiled(kernel, *inputs):
-        wp.launch_tiled(kernel, dim=[definite_cg.DOT_BLOCKS], block_dim=definite_cg.DOT_THREADS, device=device,
-                        inputs=[*inputs, definite_cg.DOT_BLOCKS])
+    def step_precondition():  # set 0, as the first iteration of a pass
+        wp.launch_tiled(definite_cg._step_precondition, dim=[groups[0]], block_dim=coarse_space.AGGREGATE_THREADS,
+                        device=device, inputs=[state, 0, p, q, M.inverse_blocks, 1, x, r, z, *groups[1:]])
 
-    def step_precondition():
-        tiled(definite_cg._step_precondition, state, p, q, M.inverse_blocks, 1, x, r, z)
+    def coarse_product():
+        coarse.apply_inverse(state, definite_cg.RZ)
 
     def step_p():
-        wp.launch(definite_cg._step_p, dim=n, device=device, inputs=[state, z, p, *basis, 0])
-
-    def decide():
-        wp.launch(definite_cg._decide, dim=1, device=device, inputs=[state, ws.condition])
+        wp.launch(definite_cg._step_p, dim=n, device=device, inputs=[state, 0, z, p, *prolonged, ws.condition, 0])
 
     def iteration():
         A.matvec(p, q, q, 1.0, 0.0)
         definite_cg.add_dot(p, q, state, definite_cg.PQ)
         step_precondition()
         if coarse:
-            coarse.solve(r, state, definite_cg.RZ_NEW)
+            coarse_product()
         step_p()
-        decide()
 
     kernels = {f"product, {name}": (lambda op=op: op.matvec(p, q, q, 1.0, 0.0)) for name, op in products.items()}
     layouts, layout_out = _layout_products(H, work.rounded, p)
@@ -212,18 +216,10 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
               f" (its largest entry {np.abs(q.numpy()).max():.2e})")
     kernels |= layouts
     kernels |= {"p . q": lambda: definite_cg.add_dot(p, q, state, definite_cg.PQ),
-                "x, r update, z = M r, r . z, abs(r)^2": step_precondition}
+                "x, r update, z = M r, r . z, abs(r)^2" + (", P^T r" if coarse else ""): step_precondition}
     if coarse:
-        groups = (len(coarse._members) + coarse_space.RESTRICT_THREADS - 1) // coarse_space.RESTRICT_THREADS
-        kernels |= {
-            "coarse: P^T r": lambda: wp.launch_tiled(
-                coarse_space._restrict, dim=[groups], block_dim=coarse_space.RESTRICT_THREADS, device=device,
-                inputs=[r, coarse.basis, coarse._members, coarse.aggregate, coarse_space.RESTRICT_THREADS,
-                        coarse.restricted]),
-            "coarse: A_c^-1 P^T r": lambda: wp.launch_tiled(
-                coarse_space._coarse_product, dim=[coarse.size], block_dim=coarse_space.PRODUCT_THREADS, device=device,
-                inputs=[coarse.inverse, coarse.restricted, coarse.values, state, definite_cg.RZ_NEW])}
-    kernels |= {"p update": step_p, "stop test": decide, "one whole iteration (8 rows of 16 lanes)": iteration}
+        kernels |= {"coarse: A_c^-1 P^T r": coarse_product}
+    kernels |= {"p update and stop test": step_p, "one whole iteration (8 rows of 16 lanes)": iteration}
     print("| kernel | us per launch |\n|---|---|")
     for name, launch in kernels.items():
         print(f"| {name} | {_per_launch_us(launch, device):.1f} |", flush=True)
@@ -232,7 +228,7 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
     print("|---|---|---|---|---|---|---|")
     unroll = definite_cg.UNROLL
     try:
-        for round_, passes in ((k, passes) for k in range(1, rounds + 1) for passes in (1, 2, 4)):
+        for round_, passes in ((k, passes) for k in range(1, rounds + 1) for passes in (3, 6)):
             definite_cg.UNROLL = passes
             for name, op in products.items():
                 workspace = definite_cg.CgWorkspace(n, device)

@@ -60,7 +60,7 @@ from benchmarks_md import machine_name, publish  # noqa: E402
 from fem_frame_timing import run  # noqa: E402
 
 from transtac_sim.physics import QuasiStaticSolver  # noqa: E402
-from transtac_sim.physics.coarse_space import CoarseSpace, mat36d, prolong  # noqa: E402
+from transtac_sim.physics.coarse_space import CoarseSpace, prolong  # noqa: E402
 from transtac_sim.physics.contact import ContactState, _f1_over_y, tangential_slip  # noqa: E402
 from transtac_sim.physics.definite_cg import BlockJacobi  # noqa: E402
 from transtac_sim.physics.device_linear import fixed_blocks, project_fixed  # noqa: E402
@@ -207,11 +207,11 @@ def coupled_newton(solver: QuasiStaticSolver, ind, may_stall: bool = False, meri
 
 @wp.kernel(enable_backward=False)
 def _two_level(inverse: wp.array(dtype=wp.mat33d), x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d),
-               z: wp.array(dtype=wp.vec3d), alpha: wp.float64, beta: wp.float64, basis: wp.array(dtype=mat36d),
-               aggregate: wp.array(dtype=int), values: wp.array(dtype=wp.float64)):
+               z: wp.array(dtype=wp.vec3d), alpha: wp.float64, beta: wp.float64, arm: wp.array(dtype=wp.vec3d),
+               free: wp.array(dtype=wp.vec3d), aggregate: wp.array(dtype=int), values: wp.array(dtype=wp.float64)):
     """z = alpha (D^-1 x + P values) + beta y, values = A_c^-1 P^T x (coarse_space.py's M r)."""
     i = wp.tid()
-    z[i] = alpha * (inverse[i] * x[i] + prolong(basis, aggregate, values, i)) + beta * y[i]
+    z[i] = alpha * (inverse[i] * x[i] + prolong(arm, free, aggregate, values, i)) + beta * y[i]
 
 
 class TwoLevel(BlockJacobi):
@@ -224,11 +224,10 @@ class TwoLevel(BlockJacobi):
         sums = wp.zeros(1, dtype=wp.float64, device=A.device)
 
         def matvec(x, y, z, alpha, beta):
-            coarse.restricted.zero_()
             coarse.solve(x, sums, 0)
             wp.launch(_two_level, dim=A.nrow, device=A.device,
-                      inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta), coarse.basis,
-                              coarse.aggregate, coarse.values])
+                      inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta), coarse.arm,
+                              coarse.free, coarse.aggregate, coarse.values])
 
         self._matvec = matvec
 

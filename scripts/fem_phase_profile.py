@@ -29,7 +29,7 @@ CG solve makes its own work vectors, state and graph, as before commit 31c75b7; 
 float32 blocks stay kept, physics/device_linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py), ``--cg-unroll N`` (CG
-iterations per pass of its conditional CUDA graph loop; 1 as before ``fem_cg_unrolled_gpu``). ``--no-replay``
+iterations per pass of its loop, a multiple of 3; 1 before ``fem_cg_unrolled_gpu``, 4 before ``fem_cg_fused_gpu``). ``--no-replay``
 launches the energy, det F, gradient and Hessian one kernel at a time instead of replaying their CUDA graphs
 (replay.py), so that ``--gpu-activity`` lists their kernels (the device CG keeps its own graph).
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
@@ -176,7 +176,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          cg_tol: float | None = typer.Option(None, help="the CG's tight tolerance, device and host PCG (default LinearSolver's)"),
          warp_cg: bool = typer.Option(False, help="Warp's cg instead of definite_cg (with --clamped-only)"),
          cg_unroll: int = typer.Option(definite_cg.UNROLL, min=1, help="definite_cg.UNROLL: CG iterations per pass "
-                                                                      "of its conditional CUDA graph loop"),
+                                                                      "of its loop (a multiple of 3)"),
          coarse_cell_mm: float | None = typer.Option(None, min=0.0, help="replace the scene's [physics] "
                                                      "coarse_cell_mm (the device CG's coarse level; 0: none)"),
          newton_force_rtol: float | None = typer.Option(None, min=0.0, max=0.1, help="replace the scene's [physics] "
@@ -223,6 +223,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: float64_operator(H)
     if warp_cg:
         device_linear.definite_cg = _warp_cg
+    if cg_unroll % definite_cg.SETS:
+        raise typer.BadParameter(f"--cg-unroll must be a multiple of {definite_cg.SETS}, got {cg_unroll}")
     definite_cg.UNROLL = cg_unroll
     if fresh_cg_graphs:
         kept_cg = device_linear.definite_cg

@@ -129,10 +129,10 @@ def _aggregate_prolongation(positions_mm, fixed, cell_mm: float, cells_factor: f
     counts = coarse_space._cell_counts
     coarse_space._cell_counts = lambda extent, cell, nodes: counts(extent, cell, int(cells_factor ** 2 * nodes))
     try:
-        aggregate, basis, count = coarse_space._bases(positions_mm, fixed, cell_mm / cells_factor ** (1 / 3))
+        aggregate, arm, count = coarse_space._modes(positions_mm, fixed, cell_mm / cells_factor ** (1 / 3))
     finally:
         coarse_space._cell_counts = counts
-    return _prolongation(aggregate, basis, count)
+    return _prolongation(aggregate, coarse_space.basis_matrices(arm, fixed), count)
 
 
 def _grid_cell_aggregates(positions_mm, cell_mm: float) -> tuple[np.ndarray, int]:
@@ -149,7 +149,8 @@ def _grid_cell_aggregates(positions_mm, cell_mm: float) -> tuple[np.ndarray, int
 def _grid_cell_prolongation(positions_mm, fixed, cell_mm: float) -> sp.csr_matrix:
     """P with the grid cells as aggregates (``_grid_cell_aggregates``)."""
     aggregate, count = _grid_cell_aggregates(positions_mm, cell_mm)
-    return _prolongation(aggregate, coarse_space.rigid_modes(positions_mm, fixed, aggregate, count), count)
+    arm = coarse_space.rigid_modes(positions_mm, fixed, aggregate, count)
+    return _prolongation(aggregate, coarse_space.basis_matrices(arm, fixed), count)
 
 
 def _free_nodes_per_aggregate(aggregate: np.ndarray, count: int, fixed: np.ndarray) -> str:
@@ -268,7 +269,7 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
               + ", ".join(f"{name} {its}" for name, (its, _) in found.items()), flush=True)
     names = list(rows[0][1])
     positions, fixed = solver._node_positions.numpy(), solver._fixed_nodes
-    aggregate, count = coarse_space._bases(positions, fixed, solver.settings.coarse_cell_mm)[::2]
+    aggregate, count = coarse_space._modes(positions, fixed, solver.settings.coarse_cell_mm)[::2]
     print(f"\n{scene}, frames 0-{frames - 1} on the CPU (device path), {len(systems)} Newton systems, every {every}-th "
           f"studied; {len(positions)} P2 nodes, {count} aggregates holding min / median / max free nodes "
           f"{_free_nodes_per_aggregate(aggregate, count, fixed)} (as grid cells: "

@@ -7,8 +7,9 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
+from pcg_reference import diagonal_block_inverses, pcg_iterate
 
-from transtac_sim.physics.coarse_space import CoarseSpace, _aggregates, coarse_inverse
+from transtac_sim.physics.coarse_space import CoarseSpace, _aggregates, basis_matrices, coarse_inverse
 from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
 
@@ -48,8 +49,8 @@ def _warp_bsr(A: sp.csr_matrix, device: str):
 
 
 def _prolongation(coarse: CoarseSpace) -> sp.csr_matrix:
-    """P (3 nodes x 6 aggregates) from the coarse space's per-node blocks B_i."""
-    basis, aggregate = coarse.basis.numpy(), coarse.aggregate.numpy()
+    """P (3 nodes x 6 aggregates) from the coarse space's per-node blocks B_i (its arms and free masks)."""
+    basis, aggregate = basis_matrices(coarse.arm.numpy(), coarse.free.numpy() == 0.0), coarse.aggregate.numpy()
     n = len(aggregate)
     rows = np.repeat(np.arange(3 * n), 6)
     cols = (6 * aggregate[:, None, None] + np.arange(6)[None, None, :]).repeat(3, axis=1).reshape(-1)
@@ -72,6 +73,52 @@ def test_galerkin_operator_is_p_transpose_h_p_with_rigid_modes_and_free_masks(de
     centroid = positions[members & ~fixed[:, 0]].mean(axis=0)
     expected = y[6 * a:6 * a + 3] + np.cross(y[6 * a + 3:6 * a + 6], positions[node] - centroid)
     np.testing.assert_allclose((P @ y).reshape(-1, 3)[node], expected, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_restriction_and_coarse_product_are_p_transpose_and_the_inverse(device: str):
+    """``solve``: P^T r summed per aggregate (one thread group each, no atomics), then the float32 inverse's product
+    and (P^T r) . A_c^-1 P^T r added to the given slot."""
+    positions, fixed, A = _grid_system()
+    coarse = CoarseSpace(positions, fixed, 3.0, device)
+    assert coarse.update(_warp_bsr(A, device))
+    P = _prolongation(coarse)
+    r = np.random.default_rng(6).standard_normal(A.shape[0])
+    sums = wp.array([0.0, 0.5], dtype=wp.float64, device=device)
+    coarse.solve(wp.array(r.reshape(-1, 3), dtype=wp.vec3d, device=device), sums, 1)
+    restricted = P.T @ r
+    np.testing.assert_allclose(coarse.restricted.numpy(), restricted, rtol=1e-12, atol=1e-12 * np.abs(restricted).max())
+    values = coarse.inverse.numpy().astype(np.float64) @ restricted
+    np.testing.assert_allclose(coarse.values.numpy(), values, rtol=1e-9, atol=1e-9 * np.abs(values).max())
+    assert sums.numpy()[0] == 0.0 and sums.numpy()[1] == pytest.approx(0.5 + restricted @ values, rel=1e-9)
+
+
+def _numpy_two_level_pcg(A: sp.csr_matrix, b: np.ndarray, P: sp.csr_matrix, inverse: np.ndarray,
+                         iterations: int) -> np.ndarray:
+    """x after ``iterations`` steps of PCG from 0 with M r = D^-1 r + P inverse P^T r (D the 3x3 diagonal blocks)."""
+    blocks = diagonal_block_inverses(A)
+    return pcg_iterate(A, b, lambda v: (blocks @ v.reshape(-1, 3, 1)).reshape(-1) + P @ (inverse @ (P.T @ v)),
+                       iterations)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_two_level_cg_iterates_are_those_of_a_numpy_pcg(device: str):
+    """Stopped by its cap after 1 to 2 passes of the CG's loop and more (the sets of the state taken in turn, the
+    update of r that sums P^T r, the p update that prolongs and runs the stop test), x is numpy's k-th two-level PCG
+    iterate with the same (float32) coarse inverse."""
+    positions, fixed, A = _grid_system()
+    H = _warp_bsr(A, device)
+    coarse = CoarseSpace(positions, fixed, 3.0, device)
+    assert coarse.update(H)
+    P, inverse = _prolongation(coarse), coarse.inverse.numpy().astype(np.float64)
+    b = np.random.default_rng(7).standard_normal(A.shape[0]) * ~fixed.reshape(-1)
+    for cap in (1, 2, 3, 4, 5, 7, 8):
+        x = wp.zeros(len(positions), dtype=wp.vec3d, device=device)
+        result = definite_cg(block_row_operator(H), wp.array(b.reshape(-1, 3), dtype=wp.vec3d, device=device), x,
+                             1e-14, cap, BlockJacobi(H), coarse=coarse)
+        assert result.iterations == cap and not result.converged, (cap, result)
+        expected = _numpy_two_level_pcg(A, b, P, inverse, cap)
+        np.testing.assert_allclose(x.numpy().reshape(-1), expected, rtol=1e-8, atol=1e-8 * np.abs(expected).max())
 
 
 def test_aggregates_have_equal_node_counts_so_a_refined_region_gets_its_share():

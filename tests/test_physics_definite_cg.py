@@ -6,8 +6,9 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import warp as wp
+from pcg_reference import diagonal_block_inverses, pcg_iterate
 
-from transtac_sim.physics.definite_cg import UNROLL, BlockJacobi, CgWorkspace, definite_cg
+from transtac_sim.physics.definite_cg import CHECK_EVERY, UNROLL, BlockJacobi, CgWorkspace, definite_cg
 from transtac_sim.physics.sparse_product import block_row_operator
 
 N = 200  # 3-vectors
@@ -77,23 +78,9 @@ def test_definite_cg_reports_its_iteration_cap():
 
 
 def _numpy_pcg(A: sp.csr_matrix, b: np.ndarray, iterations: int) -> np.ndarray:
-    """x after ``iterations`` steps of block-Jacobi PCG from 0 (the recurrence of definite_cg.py's docstring)."""
-    blocks = [np.linalg.inv(A[3 * i:3 * i + 3, 3 * i:3 * i + 3].toarray()) for i in range(N)]
-
-    def precondition(v):
-        return np.concatenate([blocks[i] @ v[3 * i:3 * i + 3] for i in range(N)])
-
-    x, r = np.zeros_like(b), b.copy()
-    z = precondition(r)
-    p, rz = z.copy(), r @ z
-    for _ in range(iterations):
-        q = A @ p
-        alpha = rz / (p @ q)
-        x, r = x + alpha * p, r - alpha * q
-        z = precondition(r)
-        rz, rz_old = r @ z, rz
-        p = z + rz / rz_old * p
-    return x
+    """x after ``iterations`` steps of block-Jacobi PCG from 0."""
+    blocks = diagonal_block_inverses(A)
+    return pcg_iterate(A, b, lambda v: (blocks @ v.reshape(-1, 3, 1)).reshape(-1), iterations)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -111,6 +98,26 @@ def test_iterations_after_the_cap_change_nothing(device: str):
         assert result.iterations == cap and not result.converged, (cap, result)
         expected = _numpy_pcg(A, b, cap)
         np.testing.assert_allclose(x.numpy().reshape(-1), expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+
+
+@pytest.mark.skipif(not wp.get_cuda_device_count(), reason="needs a GPU (the device tool, not CI)")
+def test_cuda_without_conditional_graphs_gives_the_same_iterates(monkeypatch):
+    """Where the driver has no conditional graphs, the first pass of the loop runs as it loads the kernels, and one
+    captured pass (its sets 0, 1, 2) is launched ``CHECK_EVERY`` times between reads of the state: x at each cap
+    within and beyond those launches is still the k-th PCG iterate, from a fresh workspace and from a kept one."""
+    monkeypatch.setattr(wp, "is_conditional_graph_supported", lambda: False)
+    A = _laplacian_3d(0.0)
+    H = _warp_bsr(A, "cuda:0")
+    b = np.random.default_rng(6).standard_normal(3 * N)
+    M, workspace = BlockJacobi(H), CgWorkspace(N, "cuda:0")
+    for cap in (1, 2, 3, 4, UNROLL * (CHECK_EVERY + 1) + 1):
+        for kept in (None, workspace):
+            x = wp.zeros(N, dtype=wp.vec3d, device="cuda:0")
+            result = definite_cg(block_row_operator(H), wp.array(b.reshape(N, 3), dtype=wp.vec3d, device="cuda:0"), x,
+                                 1e-14, cap, M, workspace=kept)
+            assert result.iterations == cap and not result.converged, (cap, result)
+            expected = _numpy_pcg(A, b, cap)
+            np.testing.assert_allclose(x.numpy().reshape(-1), expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
 
 
 def test_block_jacobi_applies_the_inverse_diagonal_blocks():

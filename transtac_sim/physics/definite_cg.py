@@ -20,16 +20,23 @@ rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. 
 p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
 (``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the
 solve's tolerances and cap before it (``_set_limits``) and reads the state once, at the end; without conditional
-graphs one iteration is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is five
-launches: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z and |r|^2 (all per
-entry), with the coarse level two more (P^T r, then A_c^-1 P^T r and its part of r . z), the update of p (which adds
-the coarse part of z), and the stop test. The state (r . z, p . q, |r|^2, tolerance, stop reason, iteration,
-whether it is still going, iteration cap, and at the end max |x|, its NaN count and x . b) is one small float64 array,
-so the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop
-therefore runs ``UNROLL`` iterations, and a solve pays for at most UNROLL - 1 iterations after its stop: on
-press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
-(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums
-added atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
+graphs one pass of the loop is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is four
+launches, five with the coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z,
+|r|^2 and, with the coarse level, P^T r (``_step_precondition``: one thread group per aggregate, over its nodes), the
+coarse product A_c^-1 P^T r (which adds its part of r . z), and the update of p (which adds the coarse part of z) with
+the stop test done by its first thread (``_step_p``). The stop test and the p update share a launch because the
+iteration's sums live in one of three sets of state slots, taken in turn (iteration k uses set k mod 3, and reads the
+previous r . z from set k - 1): the test writes the next set's flag and clears its sums while the other threads still
+read this set's and the previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, an
+iteration on press_slide's Newton system (H100) took 42.5 instead of 48.8 us, a solve 0.91x the time, and the device
+CG's phase 0.88-0.92x per call in its frames (BENCHMARKS.md ``fem_cg_fused_gpu``). The
+state (the three sets of the flag that the solve goes on, p . q, r . z and |r|^2; the tolerance, stop reason, iteration
+and iteration cap; at the end max |x|, its NaN count and x . b) is one small float64 array, so the iterations of a
+stopped solve change nothing (x, r and p keep their values). A pass of the captured loop therefore runs ``UNROLL``
+iterations (a multiple of 3, so that each pass starts at set 0), and a solve pays for at most UNROLL - 1 iterations
+after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
+(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums added
+atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
 A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last captured graph between solves
 of one size (a solver's Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``,
@@ -48,19 +55,31 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
-from transtac_sim.physics.coarse_space import CoarseSpace, mat36d, prolong
+from transtac_sim.physics.coarse_space import (
+    AGGREGATE_THREADS,
+    CoarseSpace,
+    group_range,
+    prolong,
+    restrict_node,
+    vec6d,
+)
 from transtac_sim.physics.reductions import launch_max_abs, reduction_buffer
 from transtac_sim.physics.sparse_product import diagonal_block
 
-CHECK_EVERY = 8  # host path without conditional graphs: iterations between reads of the state
-UNROLL = 4  # iterations per pass of the conditional graph's loop (CUDA)
+CHECK_EVERY = 3  # host path without conditional graphs: passes of the loop (UNROLL iterations each) between reads
+UNROLL = 3  # iterations per pass of the loop (a multiple of SETS)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
 
-# the state array's slots (X_MAX, X_NANS: max |x| over entries and components at the end, and the entries with a NaN;
-# XB: x . b at the end)
-RZ, RZ_NEW, PQ, RR, TOL2, STOP, ITER, ACTIVE, MAXITER, X_MAX, X_NANS, XB = (wp.constant(k) for k in range(12))
-STATE_SIZE = 12
+# the state array: SETS sets of an iteration's slots (iteration k uses set k mod SETS: whether it goes on, and its sums
+# p . q, r . z and |r|^2), then the solve's (X_MAX, X_NANS: max |x| over entries and components at the end, and the
+# entries with a NaN; XB: x . b at the end)
+SETS = 3
+ACTIVE, PQ, RZ, RR = (wp.constant(k) for k in range(4))
+SET_SIZE = wp.constant(4)
+TOL2, STOP, ITER, MAXITER, X_MAX, X_NANS, XB = (wp.constant(SETS * 4 + k) for k in range(7))
+STATE_SIZE = SETS * 4 + 7
+vec8d = wp.types.vector(length=8, dtype=wp.float64)
 # why it stopped (the STOP slot)
 _STOPS = (1.0, 2.0, 3.0, 4.0)
 CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in _STOPS)
@@ -125,20 +144,27 @@ def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.arr
 
 
 @wp.kernel(enable_backward=False)
-def _step_precondition(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.vec3d), q: wp.array(dtype=wp.vec3d),
-                       inverse: wp.array(dtype=wp.mat33d), precondition: int, x: wp.array(dtype=wp.vec3d),
-                       r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d), blocks: int):
-    """x += alpha p, r -= alpha q (alpha = r.z / p.q), z = M r (block-Jacobi), and the sums r . z -> RZ_NEW,
-    |r|^2 -> RR. With a coarse level its part of z is added where p is updated (``_step_p``) and its part of r . z,
-    (P^T r) . (A_c^-1 P^T r), by the coarse product (coarse_space.py)."""
-    block, lane = wp.tid()
-    step = state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0)
+def _step_precondition(state: wp.array(dtype=wp.float64), set_: int, p: wp.array(dtype=wp.vec3d),
+                       q: wp.array(dtype=wp.vec3d), inverse: wp.array(dtype=wp.mat33d), precondition: int,
+                       x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d),
+                       members: wp.array(dtype=int), starts: wp.array(dtype=int), arm: wp.array(dtype=wp.vec3d),
+                       free: wp.array(dtype=wp.vec3d), restricted: wp.array(dtype=wp.float64)):
+    """x += alpha p, r -= alpha q (alpha = r.z (previous set) / p.q), z = M r (block-Jacobi), and the sums r . z and
+    |r|^2 into set ``set_``; one thread group per aggregate of the coarse level (``members``, ``starts``), which also
+    writes its part of P^T r into ``restricted``, or per ``AGGREGATE_THREADS`` nodes without it (all three empty). The
+    coarse level's part of z is added where p is updated (``_step_p``) and its part of r . z by the coarse product."""
+    group, lane = wp.tid()
+    now = SET_SIZE * set_
+    step = state[now + ACTIVE] != wp.float64(0.0) and state[now + PQ] > wp.float64(0.0)
     alpha = wp.float64(0.0)
     if step:
-        alpha = state[RZ] / state[PQ]
-    rz = wp.float64(0.0)
-    rr = wp.float64(0.0)
-    for i in range(block * wp.block_dim() + lane, x.shape[0], blocks * wp.block_dim()):
+        alpha = state[SET_SIZE * ((set_ + 2) % SETS) + RZ] / state[now + PQ]
+    nodes = group_range(starts, group, x.shape[0])
+    sums = vec8d()  # r . z, |r|^2, P^T r
+    for k in range(nodes[0] + lane, nodes[1], wp.block_dim()):
+        i = k
+        if members.shape[0] > 0:
+            i = members[k]
         ri = r[i]
         if step:
             x[i] = x[i] + alpha * p[i]
@@ -148,32 +174,63 @@ def _step_precondition(state: wp.array(dtype=wp.float64), p: wp.array(dtype=wp.v
         if precondition != 0:
             zi = inverse[i] * ri
         z[i] = zi
-        rz += wp.dot(ri, zi)
-        rr += wp.dot(ri, ri)
-    rz_total = wp.tile_sum(wp.tile(rz))
-    rr_total = wp.tile_sum(wp.tile(rr))
+        v = vec6d()
+        if restricted.shape[0] > 0:
+            v = restrict_node(arm[i], free[i], ri)
+        sums += vec8d(wp.dot(ri, zi), wp.dot(ri, ri), v[0], v[1], v[2], v[3], v[4], v[5])
+    total = wp.tile_sum(wp.tile(sums, preserve_type=True))[0]
     if lane == 0:
-        wp.atomic_add(state, RZ_NEW, rz_total[0])
-        wp.atomic_add(state, RR, rr_total[0])
+        wp.atomic_add(state, now + RZ, total[0])
+        wp.atomic_add(state, now + RR, total[1])
+        if restricted.shape[0] > 0:
+            for c in range(6):
+                restricted[6 * group + c] = total[2 + c]
+
+
+@wp.func
+def _decide(state: wp.array(dtype=wp.float64), now: int, following: int, condition: wp.array(dtype=wp.int32)):
+    """After an iteration's updates (its sums in set ``now``): the stop reason, the iteration count and whether to go on
+    (the ``following`` set's flag, whose sums are cleared for the next iteration)."""
+    going = wp.float64(0.0)
+    if state[now + ACTIVE] != wp.float64(0.0):
+        state[ITER] = state[ITER] + wp.float64(1.0)
+        if not state[now + PQ] > wp.float64(0.0):
+            state[STOP] = NOT_DEFINITE
+        elif state[now + RR] <= state[TOL2]:
+            state[STOP] = CONVERGED
+        elif not state[now + RZ] > wp.float64(0.0):
+            state[STOP] = PRECONDITIONER_NOT_DEFINITE
+        elif state[ITER] >= state[MAXITER]:
+            state[STOP] = ITERATION_CAP
+        if state[STOP] == wp.float64(0.0):
+            going = wp.float64(1.0)
+    state[following + ACTIVE] = going
+    state[following + PQ] = wp.float64(0.0)
+    state[following + RZ] = wp.float64(0.0)
+    state[following + RR] = wp.float64(0.0)
+    condition[0] = wp.where(going != wp.float64(0.0), 1, 0)
 
 
 @wp.kernel(enable_backward=False)
-def _step_p(state: wp.array(dtype=wp.float64), z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d),
-            basis: wp.array(dtype=mat36d), aggregate: wp.array(dtype=int), values: wp.array(dtype=wp.float64),
-            restricted: wp.array(dtype=wp.float64), first: int):
-    """p = z + (r . z)_new / (r . z) p, or p = z before the first iteration (``first``); with a coarse level (``values``
-    = A_c^-1 P^T r not empty) z is block-Jacobi's part and P values is added here, and P^T r (``restricted``, read)
-    is cleared for the next iteration."""
+def _step_p(state: wp.array(dtype=wp.float64), set_: int, z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d),
+            arm: wp.array(dtype=wp.vec3d), free: wp.array(dtype=wp.vec3d), aggregate: wp.array(dtype=int),
+            values: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32), first: int):
+    """p = z + (r . z) / (r . z)_previous p, or p = z before the first iteration (``first``); with a coarse level
+    (``values`` = A_c^-1 P^T r not empty) z is block-Jacobi's part and P values is added here. Thread 0 then runs the
+    stop test (``_decide``; not before the first iteration): it writes only the next set, which no thread reads here."""
     i = wp.tid()
     zi = z[i]
     if values.shape[0] > 0:
-        zi = zi + prolong(basis, aggregate, values, i)
-        for k in range(i, restricted.shape[0], p.shape[0]):  # one entry per thread where there are more nodes
-            restricted[k] = wp.float64(0.0)
+        zi = zi + prolong(arm, free, aggregate, values, i)
     if first != 0:
         p[i] = zi
-    elif state[ACTIVE] != wp.float64(0.0) and state[PQ] > wp.float64(0.0) and state[RZ_NEW] > wp.float64(0.0):
-        p[i] = zi + (state[RZ_NEW] / state[RZ]) * p[i]
+        return
+    now = SET_SIZE * set_
+    rz = state[now + RZ]
+    if state[now + ACTIVE] != wp.float64(0.0) and state[now + PQ] > wp.float64(0.0) and rz > wp.float64(0.0):
+        p[i] = zi + (rz / state[SET_SIZE * ((set_ + 2) % SETS) + RZ]) * p[i]
+    if i == 0:
+        _decide(state, now, SET_SIZE * ((set_ + 1) % SETS), condition)
 
 
 @wp.kernel(enable_backward=False)
@@ -186,12 +243,12 @@ def _set_limits(limits: wp.array(dtype=wp.float64), rtol2: wp.float64, atol2: wp
 
 @wp.kernel(enable_backward=False)
 def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
-    """After the set-up's sums (|r|^2 -> RR, r . z -> RZ_NEW, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2, atol^2),
+    """After the set-up's sums (|r|^2 and r . z into set 2, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2, atol^2),
     the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the state of
-    the first iteration."""
+    the first iteration (set 0 going on, r . z kept in set 2 as its previous one)."""
     tol2 = wp.max(limits[0] * state[TOL2], limits[1])
-    rz = state[RZ_NEW]
-    rr = state[RR]
+    rz = state[2 * SET_SIZE + RZ]
+    rr = state[2 * SET_SIZE + RR]
     for k in range(STATE_SIZE):
         state[k] = wp.float64(0.0)
     state[TOL2] = tol2
@@ -201,31 +258,8 @@ def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64)
     elif not rz > wp.float64(0.0):
         state[STOP] = PRECONDITIONER_NOT_DEFINITE
     else:
-        state[RZ] = rz
+        state[2 * SET_SIZE + RZ] = rz
         state[ACTIVE] = wp.float64(1.0)
-    condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
-
-
-@wp.kernel(enable_backward=False)
-def _decide(state: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
-    """After an iteration's updates: the stop reason, the iteration count and whether to go on; clears the sums
-    for the next iteration."""
-    if state[ACTIVE] != wp.float64(0.0):
-        state[ITER] = state[ITER] + wp.float64(1.0)
-        if not state[PQ] > wp.float64(0.0):
-            state[STOP] = NOT_DEFINITE
-        elif state[RR] <= state[TOL2]:
-            state[STOP] = CONVERGED
-        elif not state[RZ_NEW] > wp.float64(0.0):
-            state[STOP] = PRECONDITIONER_NOT_DEFINITE
-        elif state[ITER] >= state[MAXITER]:
-            state[STOP] = ITERATION_CAP
-        state[RZ] = state[RZ_NEW]
-        if state[STOP] != wp.float64(0.0):
-            state[ACTIVE] = wp.float64(0.0)
-    state[RZ_NEW] = wp.float64(0.0)
-    state[PQ] = wp.float64(0.0)
-    state[RR] = wp.float64(0.0)
     condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
 
 
@@ -247,8 +281,8 @@ class CgWorkspace:
         self.x_max_work = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
-        self.no_basis = wp.empty(0, dtype=mat36d, device=device)
-        self.no_aggregate = wp.empty(0, dtype=int, device=device)
+        self.no_nodes = wp.empty(0, dtype=int, device=device)
+        self.no_arms = wp.empty(0, dtype=wp.vec3d, device=device)
         self.no_values = wp.empty(0, dtype=wp.float64, device=device)
         self.graph_key: tuple | None = None  # (operator's graph_key, preconditioner, x) of ``graph``
         self.graph = None
@@ -273,38 +307,39 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     inverse = M.inverse_blocks if M is not None else ws.no_preconditioner
     if coarse is not None and not (M is not None and coarse.ready):
         raise ValueError("a coarse level needs the block-Jacobi preconditioner and a coarse inverse")
-    prolonged = (coarse.basis, coarse.aggregate, coarse.values, coarse.restricted) if coarse is not None else \
-        (ws.no_basis, ws.no_aggregate, ws.no_values, ws.no_values)
+    if UNROLL % SETS:
+        raise ValueError(f"definite_cg.UNROLL must be a multiple of {SETS} (the state's sets), got {UNROLL}")
+    if coarse is not None:  # one thread group per aggregate, which also sums its part of P^T r
+        groups = (coarse.aggregates, coarse.members, coarse.starts, coarse.arm, coarse.free, coarse.restricted)
+        prolonged = (coarse.arm, coarse.free, coarse.aggregate, coarse.values)
+    else:
+        groups = ((len(b) + AGGREGATE_THREADS - 1) // AGGREGATE_THREADS, ws.no_nodes, ws.no_nodes, ws.no_arms,
+                  ws.no_arms, ws.no_values)
+        prolonged = (ws.no_arms, ws.no_arms, ws.no_nodes, ws.no_values)
 
-    def tiled(kernel, *inputs):
-        wp.launch_tiled(kernel, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=device,
-                        inputs=[*inputs, DOT_BLOCKS])
-
-    def step_precondition():
-        tiled(_step_precondition, state, p, q, inverse, int(M is not None), x, r, z)
+    def step_precondition(set_: int):
+        wp.launch_tiled(_step_precondition, dim=[groups[0]], block_dim=AGGREGATE_THREADS, device=device,
+                        inputs=[state, set_, p, q, inverse, int(M is not None), x, r, z, *groups[1:]])
         if coarse is not None:
-            coarse.solve(r, state, RZ_NEW)
+            coarse.apply_inverse(state, SET_SIZE * set_ + RZ)
 
-    def start():  # r = b - A x, z = M r, p = z, their sums (ACTIVE 0: no step), then the state of the first iteration
+    def step_p(set_: int, first: int):
+        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, set_, z, p, *prolonged, condition, first])
+
+    def start():  # r = b - A x, z = M r, p = z, their sums in set 2 (not going on: no step), then the first iteration's
         state.zero_()
-        if coarse is not None:
-            coarse.restricted.zero_()
         A.matvec(x, ws.b, r, -1.0, 1.0)
-        step_precondition()
-        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 1])
-        tiled(_dot, ws.b, ws.b, state, TOL2)
+        step_precondition(2)
+        step_p(2, 1)
+        add_dot(ws.b, ws.b, state, TOL2)
         wp.launch(_start, dim=1, device=device, inputs=[state, ws.limits, condition])
 
-    def iteration():
-        A.matvec(p, q, q, 1.0, 0.0)
-        tiled(_dot, p, q, state, PQ)
-        step_precondition()
-        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, z, p, *prolonged, 0])
-        wp.launch(_decide, dim=1, device=device, inputs=[state, condition])
-
-    def unrolled():
-        for _ in range(UNROLL):
-            iteration()
+    def unrolled():  # iterations 0 .. UNROLL - 1 of a pass, with the sets 0, 1, 2, 0, ...
+        for k in range(UNROLL):
+            A.matvec(p, q, q, 1.0, 0.0)
+            add_dot(p, q, state, SET_SIZE * (k % SETS) + PQ)
+            step_precondition(k % SETS)
+            step_p(k % SETS, 0)
 
     def finish():  # max |x|, its NaN count and x . b into the state, read with it
         launch_max_abs(x, ws.x_max_work)
@@ -315,9 +350,9 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])
     if not device.is_cuda:
         start()
-        wp.capture_while(condition, iteration)  # on the CPU: a host loop on the condition
+        wp.capture_while(condition, unrolled)  # on the CPU: a host loop on the condition
         finish()
-    else:  # with conditional graphs (CUDA 12.4+) the whole solve is the graph, otherwise one iteration
+    else:  # with conditional graphs (CUDA 12.4+) the whole solve is the graph, otherwise one pass of the loop
         conditional = wp.is_conditional_graph_supported()
         key = getattr(A, "graph_key", None)
         key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr)
@@ -328,15 +363,15 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             if conditional:  # outside any capture, to load the kernels' modules (the captured solve starts again)
                 start()
                 finish()
-            else:
-                iteration()
+            else:  # the first pass, run as it loads the modules (the captured passes follow it)
+                unrolled()
             with wp.ScopedCapture(device=device, force_module_load=False) as capture:
                 if conditional:
                     start()
                     wp.capture_while(condition, unrolled)
                     finish()
                 else:
-                    iteration()
+                    unrolled()
             graph = capture.graph
             ws.captures += 1
             if key:
