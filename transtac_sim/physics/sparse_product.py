@@ -127,9 +127,12 @@ def _block_rows_product(
 
 
 @wp.kernel(enable_backward=False)
-def _round_to_float32(blocks: wp.array(dtype=wp.mat33d), rounded: wp.array(dtype=wp.mat33f)):
-    k = wp.tid()
-    rounded[k] = wp.mat33f(blocks[k])
+def _round_to_float32(entries: wp.array(dtype=wp.float64), rounded: wp.array(dtype=wp.float32)):
+    """The blocks' entries rounded to float32, one thread per entry (both arrays flat views of the blocks, so that the
+    loads and stores are coalesced): on press_slide's Newton systems on an H100 0.49-0.52x the time of one thread per
+    mat33d block (BENCHMARKS.md ``fem_cg_fused_gpu``)."""
+    i = wp.tid()
+    rounded[i] = wp.float32(entries[i])
 
 
 def block_row_operator(A: BsrMatrix, single_precision: bool = False,
@@ -145,7 +148,8 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False,
         if rounded is not None and len(rounded) < len(A.values):
             raise ValueError(f"float32 buffer of {len(rounded)} blocks for a matrix of {len(A.values)}")
         blocks = rounded if rounded is not None else wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
-        wp.launch(_round_to_float32, dim=len(A.values), device=A.device, inputs=[A.values, blocks])
+        wp.launch(_round_to_float32, dim=9 * len(A.values), device=A.device,
+                  inputs=[A.values.view(wp.float64).flatten(), blocks.view(wp.float32).flatten()])
 
     if A.device.is_cuda:
         kernel, groups, threads, rows = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,
