@@ -34,7 +34,7 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import coarse_space, definite_cg, device_linear, sparse_product
+from transtac_sim.physics import definite_cg, device_linear, sparse_product
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
@@ -174,30 +174,27 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
           f"coarse unknowns {coarse.size if coarse else 0}\n")
 
     ws = work.cg
-    p, q, r, z, x = (wp.clone(kept["rhs"]) for _ in range(5))
+    p, q, r, z = ws.p, ws.q, ws.r, ws.z
+    for v in (p, r, z):
+        wp.copy(v, kept["rhs"])
+    x = wp.clone(kept["rhs"])
     A.matvec(p, q, q, 1.0, 0.0)
     state = ws.state
-    values = np.zeros(definite_cg.STATE_SIZE)  # set 0 going on, p . q = 1, a previous r . z: every kernel does its work
-    values[[definite_cg.ACTIVE, definite_cg.PQ, 2 * definite_cg.SET_SIZE + definite_cg.RZ, definite_cg.MAXITER]] = \
-        (1.0, 1.0, 1e-3, 1e9)
+    # set 0 going on, its r . z positive, p . q = 1e300 and the previous set's r . z 1e150: every kernel does its work
+    # (alpha = 1e-150 and beta = r . z / 1e150 keep the vectors' sizes over the repeated launches)
+    values = np.zeros(definite_cg.STATE_SIZE)
+    values[[definite_cg.ACTIVE, definite_cg.PQ, definite_cg.RZ, 2 * definite_cg.SET_SIZE + definite_cg.RZ,
+            definite_cg.MAXITER]] = (1.0, 1e300, 1.0, 1e150, 1e9)
     state.assign(values)
-    if coarse:
-        groups = (coarse.aggregates, coarse.members, coarse.starts, coarse.arm, coarse.free, coarse.restricted)
-        prolonged = (coarse.arm, coarse.free, coarse.aggregate, coarse.values)
-    else:
-        groups = ((n + coarse_space.AGGREGATE_THREADS - 1) // coarse_space.AGGREGATE_THREADS, ws.no_nodes,
-                  ws.no_nodes, ws.no_arms, ws.no_arms, ws.no_values)
-        prolonged = (ws.no_arms, ws.no_arms, ws.no_nodes, ws.no_values)
 
     def step_precondition():  # set 0, as the first iteration of a pass
-        wp.launch_tiled(definite_cg._step_precondition, dim=[groups[0]], block_dim=coarse_space.AGGREGATE_THREADS,
-                        device=device, inputs=[state, 0, p, q, M.inverse_blocks, 1, x, r, z, *groups[1:]])
+        definite_cg.launch_step_precondition(ws, 0, x, M.inverse_blocks, coarse)
 
     def coarse_product():
         coarse.apply_inverse(state, definite_cg.RZ)
 
     def step_p():
-        wp.launch(definite_cg._step_p, dim=n, device=device, inputs=[state, 0, z, p, *prolonged, ws.condition, 0])
+        definite_cg.launch_p_update(ws, 0, coarse, first=False)
 
     def iteration():
         A.matvec(p, q, q, 1.0, 0.0)

@@ -29,9 +29,9 @@ CG solve makes its own work vectors, state and graph, as before commit 31c75b7; 
 float32 blocks stay kept, physics/device_linear.py), ``--warp-cg``
 (Warp's ``cg`` instead of physics/definite_cg.py: it cannot tell an indefinite system, so use it with
 ``--clamped-only``; the two flags together are the device path before definite_cg.py), ``--cg-unroll N`` (CG
-iterations per pass of its loop, a multiple of 3; 1 before ``fem_cg_unrolled_gpu``, 4 before ``fem_cg_fused_gpu``). ``--no-replay``
-launches the energy, det F, gradient and Hessian one kernel at a time instead of replaying their CUDA graphs
-(replay.py), so that ``--gpu-activity`` lists their kernels (the device CG keeps its own graph).
+iterations per pass of its loop, a multiple of 3; 1 before ``fem_cg_unrolled_gpu``, 4 before ``fem_cg_fused_gpu``).
+``--no-replay`` launches the energy, det F, gradient and Hessian one kernel at a time instead of replaying their CUDA
+graphs (replay.py), so that ``--gpu-activity`` lists their kernels (the device CG keeps its own graph).
 ``--coarse-cell-mm`` (the scene's ``[physics] coarse_cell_mm``; 0: block-Jacobi alone) and ``--coarse-refresh-steps``
 (device_linear.COARSE_REFRESH_STEPS) set the device CG's coarse level (physics/coarse_space.py; BENCHMARKS.md
 ``fem_coarse_level_gpu``), whose size, inverses made and their seconds are printed.

@@ -76,15 +76,19 @@ def test_galerkin_operator_is_p_transpose_h_p_with_rigid_modes_and_free_masks(de
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_restriction_and_coarse_product_are_p_transpose_and_the_inverse(device: str):
-    """``solve``: P^T r summed per aggregate (one thread group each, no atomics), then the float32 inverse's product
-    and (P^T r) . A_c^-1 P^T r added to the given slot."""
+@pytest.mark.parametrize("cell_mm", [3.0, 12.0])
+def test_restriction_and_coarse_product_are_p_transpose_and_the_inverse(device: str, cell_mm: float):
+    """``solve``: P^T r summed per aggregate (one thread group each, no atomics; with 12 mm cells, aggregates of about
+    360 nodes, more than a group's 128 threads), written over what was there, then the float32 inverse's product and
+    (P^T r) . A_c^-1 P^T r added to the given slot."""
     positions, fixed, A = _grid_system()
-    coarse = CoarseSpace(positions, fixed, 3.0, device)
+    coarse = CoarseSpace(positions, fixed, cell_mm, device)
     assert coarse.update(_warp_bsr(A, device))
+    assert (cell_mm < 10.0) or np.bincount(coarse.aggregate.numpy()).min() > 128
     P = _prolongation(coarse)
     r = np.random.default_rng(6).standard_normal(A.shape[0])
     sums = wp.array([0.0, 0.5], dtype=wp.float64, device=device)
+    coarse.restricted.fill_(7.0)  # not cleared by the caller: the restriction writes its sums
     coarse.solve(wp.array(r.reshape(-1, 3), dtype=wp.vec3d, device=device), sums, 1)
     restricted = P.T @ r
     np.testing.assert_allclose(coarse.restricted.numpy(), restricted, rtol=1e-12, atol=1e-12 * np.abs(restricted).max())
@@ -102,13 +106,15 @@ def _numpy_two_level_pcg(A: sp.csr_matrix, b: np.ndarray, P: sp.csr_matrix, inve
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_two_level_cg_iterates_are_those_of_a_numpy_pcg(device: str):
+@pytest.mark.parametrize("cell_mm", [3.0, 12.0])
+def test_two_level_cg_iterates_are_those_of_a_numpy_pcg(device: str, cell_mm: float):
     """Stopped by its cap after 1 to 2 passes of the CG's loop and more (the sets of the state taken in turn, the
     update of r that sums P^T r, the p update that prolongs and runs the stop test), x is numpy's k-th two-level PCG
-    iterate with the same (float32) coarse inverse."""
+    iterate with the same (float32) coarse inverse; with 12 mm cells an aggregate has more nodes than its thread
+    group has threads."""
     positions, fixed, A = _grid_system()
     H = _warp_bsr(A, device)
-    coarse = CoarseSpace(positions, fixed, 3.0, device)
+    coarse = CoarseSpace(positions, fixed, cell_mm, device)
     assert coarse.update(H)
     P, inverse = _prolongation(coarse), coarse.inverse.numpy().astype(np.float64)
     b = np.random.default_rng(7).standard_normal(A.shape[0]) * ~fixed.reshape(-1)

@@ -109,15 +109,17 @@ def test_cuda_without_conditional_graphs_gives_the_same_iterates(monkeypatch):
     A = _laplacian_3d(0.0)
     H = _warp_bsr(A, "cuda:0")
     b = np.random.default_rng(6).standard_normal(3 * N)
-    M, workspace = BlockJacobi(H), CgWorkspace(N, "cuda:0")
+    M, workspace, kept_x = BlockJacobi(H), CgWorkspace(N, "cuda:0"), wp.zeros(N, dtype=wp.vec3d, device="cuda:0")
     for cap in (1, 2, 3, 4, UNROLL * (CHECK_EVERY + 1) + 1):
         for kept in (None, workspace):
-            x = wp.zeros(N, dtype=wp.vec3d, device="cuda:0")
+            x = wp.zeros(N, dtype=wp.vec3d, device="cuda:0") if kept is None else kept_x
+            x.zero_()
             result = definite_cg(block_row_operator(H), wp.array(b.reshape(N, 3), dtype=wp.vec3d, device="cuda:0"), x,
                                  1e-14, cap, M, workspace=kept)
             assert result.iterations == cap and not result.converged, (cap, result)
             expected = _numpy_pcg(A, b, cap)
             np.testing.assert_allclose(x.numpy().reshape(-1), expected, rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+    assert workspace.captures == 1  # the kept workspace's later solves launched its graph without a first pass
 
 
 def test_block_jacobi_applies_the_inverse_diagonal_blocks():

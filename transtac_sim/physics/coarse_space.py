@@ -26,9 +26,10 @@ thread group sums an aggregate's part of P^T r without atomics. ``update`` forms
 block row, its blocks' B_i^T H_ij B_j added atomically into a dense matrix) and inverts it on the host (Cholesky;
 LAPACK ``potrf``/``potri``): about 1,000 unknowns on the default gel with cell_mm = 3. The CG applies it on the device
 (definite_cg.py): P^T r where it updates r, then the inverse as a dense float32 product that also adds the coarse part
-of r . M r, (P^T r) . A_c^-1 P^T r (``apply_inverse``); P A_c^-1 P^T r is added where the CG updates p. On press_slide (H100) a CG iteration costs 1.7x and a Newton system takes 0.43x the
-iterations: the CG 0.7x the time, the frames 1.22-1.35x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that
-carry nothing (an aggregate whose nodes are all fixed, rotations left out) are dropped from the inverse. Where A_c is not positive definite (H is not), ``update``
+of r . M r, (P^T r) . A_c^-1 P^T r (``apply_inverse``); P A_c^-1 P^T r is added where the CG updates p. On press_slide
+(H100) a CG iteration costs 1.7x and a Newton system takes 0.43x the iterations: the CG 0.7x the time, the frames
+1.22-1.35x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that carry nothing (an aggregate whose nodes are all
+fixed, rotations left out) are dropped from the inverse. Where A_c is not positive definite (H is not), ``update``
 keeps the last inverse: any positive definite A_c^-1 gives a positive definite M, and one made from an earlier
 Newton system of the same gel still captures its rigid motions.
 """
@@ -45,15 +46,14 @@ from threadpoolctl import threadpool_limits
 
 from transtac_sim.physics.sparse_product import block_row_range
 
-mat36d = wp.types.matrix(shape=(3, 6), dtype=wp.float64)
 vec6d = wp.types.vector(length=6, dtype=wp.float64)
 
 #: an aggregate keeps its rotations where its free nodes' second moment about their centroid has its smallest
 #: eigenvalue above this fraction of its largest (nodes near a line have a rotation that moves none of them)
 ROTATION_SPREAD = 1.0e-3
 #: threads per group of an aggregate's nodes (the restriction, definite_cg.py's update of r) and per row of the coarse
-#: product (more than one warp per row: the coarse matrix has about 1,000 rows, too few warps of one row each to keep the
-#: memory busy)
+#: product (more than one warp per row: the coarse matrix has about 1,000 rows, too few warps of one row each to keep
+#: the memory busy)
 AGGREGATE_THREADS = wp.constant(128)
 PRODUCT_THREADS = 128
 #: coarse modes whose Galerkin diagonal is below this fraction of the largest carry nothing and are dropped
@@ -183,9 +183,10 @@ def _modes(positions_mm: np.ndarray, fixed: np.ndarray, cell_mm: float) -> tuple
 
 
 def rigid_modes(positions_mm: np.ndarray, fixed: np.ndarray, aggregate: np.ndarray, count: int) -> np.ndarray:
-    """Each node's arm c_i (n, 3; mm) for the aggregates ``aggregate`` (of each node, ``count`` of them): its offset from
-    its aggregate's free nodes' centroid, 0 where the aggregate keeps its translations only (fewer than 4 free nodes, or
-    nodes near a line, ``ROTATION_SPREAD``). With the free mask f_i (``~fixed``) it gives B_i (``basis_matrices``)."""
+    """Each node's arm c_i (n, 3; mm) for the aggregates ``aggregate`` (of each node, ``count`` of them): its offset
+    from its aggregate's free nodes' centroid, 0 where the aggregate keeps its translations only (fewer than 4 free
+    nodes, or nodes near a line, ``ROTATION_SPREAD``). With the free mask f_i (``~fixed``) it gives B_i
+    (``basis_matrices``)."""
     free_node = ~fixed.all(axis=1)
     members = np.bincount(aggregate[free_node], minlength=count)
     centroid = np.zeros((count, 3))

@@ -27,15 +27,17 @@ coarse product A_c^-1 P^T r (which adds its part of r . z), and the update of p 
 the stop test done by its first thread (``_step_p``). The stop test and the p update share a launch because the
 iteration's sums live in one of three sets of state slots, taken in turn (iteration k uses set k mod 3, and reads the
 previous r . z from set k - 1): the test writes the next set's flag and clears its sums while the other threads still
-read this set's and the previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, an
-iteration on press_slide's Newton system (H100) took 42.5 instead of 48.8 us, a solve 0.91x the time, and the device
-CG's phase 0.88-0.92x per call in its frames (BENCHMARKS.md ``fem_cg_fused_gpu``). The
+read this set's and the previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, a
+solve of press_slide's Newton system (H100) took 0.87-0.91x the time at the same CG iterations (a whole iteration
+46.1 instead of 48.9 us in scripts/bench_cg_kernels.py), and the device CG's phase 0.88-0.93x per call in its frames
+(BENCHMARKS.md ``fem_cg_fused_gpu``). The
 state (the three sets of the flag that the solve goes on, p . q, r . z and |r|^2; the tolerance, stop reason, iteration
 and iteration cap; at the end max |x|, its NaN count and x . b) is one small float64 array, so the iterations of a
 stopped solve change nothing (x, r and p keep their values). A pass of the captured loop therefore runs ``UNROLL``
 iterations (a multiple of 3, so that each pass starts at set 0), and a solve pays for at most UNROLL - 1 iterations
 after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
-(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py). Dot products are block-wise tile sums added
+(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py), and 6 about 2 % less than 3 per solve from 0,
+while a short solve (a step estimate) pays for up to 5 iterations after its stop instead of 2 (``fem_cg_fused_gpu``). Dot products are block-wise tile sums added
 atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
 
 A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last captured graph between solves
@@ -74,11 +76,11 @@ DOT_THREADS = 256
 # the state array: SETS sets of an iteration's slots (iteration k uses set k mod SETS: whether it goes on, and its sums
 # p . q, r . z and |r|^2), then the solve's (X_MAX, X_NANS: max |x| over entries and components at the end, and the
 # entries with a NaN; XB: x . b at the end)
-SETS = 3
+SETS = wp.constant(3)
 ACTIVE, PQ, RZ, RR = (wp.constant(k) for k in range(4))
 SET_SIZE = wp.constant(4)
-TOL2, STOP, ITER, MAXITER, X_MAX, X_NANS, XB = (wp.constant(SETS * 4 + k) for k in range(7))
-STATE_SIZE = SETS * 4 + 7
+TOL2, STOP, ITER, MAXITER, X_MAX, X_NANS, XB = (wp.constant(SETS * SET_SIZE + k) for k in range(7))
+STATE_SIZE = SETS * SET_SIZE + 7
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 # why it stopped (the STOP slot)
 _STOPS = (1.0, 2.0, 3.0, 4.0)
@@ -143,6 +145,12 @@ def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.arr
         wp.atomic_add(state, slot, total[0])
 
 
+@wp.func
+def _previous(set_: int):
+    """The first slot of the set before ``set_`` (the previous iteration's: its r . z is this one's previous r . z)."""
+    return SET_SIZE * ((set_ + SETS - 1) % SETS)
+
+
 @wp.kernel(enable_backward=False)
 def _step_precondition(state: wp.array(dtype=wp.float64), set_: int, p: wp.array(dtype=wp.vec3d),
                        q: wp.array(dtype=wp.vec3d), inverse: wp.array(dtype=wp.mat33d), precondition: int,
@@ -151,14 +159,15 @@ def _step_precondition(state: wp.array(dtype=wp.float64), set_: int, p: wp.array
                        free: wp.array(dtype=wp.vec3d), restricted: wp.array(dtype=wp.float64)):
     """x += alpha p, r -= alpha q (alpha = r.z (previous set) / p.q), z = M r (block-Jacobi), and the sums r . z and
     |r|^2 into set ``set_``; one thread group per aggregate of the coarse level (``members``, ``starts``), which also
-    writes its part of P^T r into ``restricted``, or per ``AGGREGATE_THREADS`` nodes without it (all three empty). The
+    writes its part of P^T r into ``restricted``, or per ``AGGREGATE_THREADS`` nodes without it (``members``,
+    ``starts``, ``arm``, ``free`` and ``restricted`` empty). The
     coarse level's part of z is added where p is updated (``_step_p``) and its part of r . z by the coarse product."""
     group, lane = wp.tid()
     now = SET_SIZE * set_
     step = state[now + ACTIVE] != wp.float64(0.0) and state[now + PQ] > wp.float64(0.0)
     alpha = wp.float64(0.0)
     if step:
-        alpha = state[SET_SIZE * ((set_ + 2) % SETS) + RZ] / state[now + PQ]
+        alpha = state[_previous(set_) + RZ] / state[now + PQ]
     nodes = group_range(starts, group, x.shape[0])
     sums = vec8d()  # r . z, |r|^2, P^T r
     for k in range(nodes[0] + lane, nodes[1], wp.block_dim()):
@@ -228,7 +237,7 @@ def _step_p(state: wp.array(dtype=wp.float64), set_: int, z: wp.array(dtype=wp.v
     now = SET_SIZE * set_
     rz = state[now + RZ]
     if state[now + ACTIVE] != wp.float64(0.0) and state[now + PQ] > wp.float64(0.0) and rz > wp.float64(0.0):
-        p[i] = zi + (rz / state[SET_SIZE * ((set_ + 2) % SETS) + RZ]) * p[i]
+        p[i] = zi + (rz / state[_previous(set_) + RZ]) * p[i]
     if i == 0:
         _decide(state, now, SET_SIZE * ((set_ + 1) % SETS), condition)
 
@@ -243,12 +252,13 @@ def _set_limits(limits: wp.array(dtype=wp.float64), rtol2: wp.float64, atol2: wp
 
 @wp.kernel(enable_backward=False)
 def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
-    """After the set-up's sums (|r|^2 and r . z into set 2, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2, atol^2),
-    the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the state of
-    the first iteration (set 0 going on, r . z kept in set 2 as its previous one)."""
+    """After the set-up's sums (|r|^2 and r . z into the last set, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2,
+    atol^2), the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the
+    state of the first iteration (set 0 going on, r . z kept in the last set as its previous one)."""
     tol2 = wp.max(limits[0] * state[TOL2], limits[1])
-    rz = state[2 * SET_SIZE + RZ]
-    rr = state[2 * SET_SIZE + RR]
+    last = (SETS - 1) * SET_SIZE
+    rz = state[last + RZ]
+    rr = state[last + RR]
     for k in range(STATE_SIZE):
         state[k] = wp.float64(0.0)
     state[TOL2] = tol2
@@ -258,7 +268,7 @@ def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64)
     elif not rz > wp.float64(0.0):
         state[STOP] = PRECONDITIONER_NOT_DEFINITE
     else:
-        state[2 * SET_SIZE + RZ] = rz
+        state[last + RZ] = rz
         state[ACTIVE] = wp.float64(1.0)
     condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
 
@@ -289,6 +299,29 @@ class CgWorkspace:
         self.captures = 0  # graphs captured (the rest of the solves on CUDA launched a kept one)
 
 
+def launch_step_precondition(ws: CgWorkspace, set_: int, x: wp.array, inverse: wp.array,
+                             coarse: CoarseSpace | None) -> None:
+    """``_step_precondition`` on the workspace's vectors and x, its sums into set ``set_``: one thread group per
+    aggregate of ``coarse`` (which also sums P^T r into its ``restricted``), or per ``AGGREGATE_THREADS`` nodes without
+    it; ``inverse``: block-Jacobi's inverse blocks (empty: no preconditioner)."""
+    if coarse is not None:
+        groups, nodes = coarse.aggregates, (coarse.members, coarse.starts, coarse.arm, coarse.free, coarse.restricted)
+    else:
+        groups = (len(x) + AGGREGATE_THREADS - 1) // AGGREGATE_THREADS
+        nodes = (ws.no_nodes, ws.no_nodes, ws.no_arms, ws.no_arms, ws.no_values)
+    wp.launch_tiled(_step_precondition, dim=[groups], block_dim=AGGREGATE_THREADS, device=x.device,
+                    inputs=[ws.state, set_, ws.p, ws.q, inverse, int(inverse.shape[0] > 0), x, ws.r, ws.z, *nodes])
+
+
+def launch_p_update(ws: CgWorkspace, set_: int, coarse: CoarseSpace | None, first: bool) -> None:
+    """``_step_p`` on the workspace's vectors for set ``set_`` (the stop test included but where ``first``), adding the
+    coarse part of z where ``coarse`` is given."""
+    prolonged = (coarse.arm, coarse.free, coarse.aggregate, coarse.values) if coarse is not None else \
+        (ws.no_arms, ws.no_arms, ws.no_nodes, ws.no_values)
+    wp.launch(_step_p, dim=len(ws.p), device=ws.p.device,
+              inputs=[ws.state, set_, ws.z, ws.p, *prolonged, ws.condition, int(first)])
+
+
 def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
                 M: BlockJacobi | None = None, atol: float = 0.0, workspace: CgWorkspace | None = None,
                 coarse: CoarseSpace | None = None) -> CgResult:
@@ -303,34 +336,23 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     if workspace is not None and not len(workspace.r) == len(b) == len(x):
         raise ValueError(f"CG workspace of {len(workspace.r)} 3-vectors for b of {len(b)} and x of {len(x)}")
     ws = workspace if workspace is not None else CgWorkspace(len(b), device)
-    r, z, p, q, state, condition = ws.r, ws.z, ws.p, ws.q, ws.state, ws.condition
+    r, p, q, state, condition = ws.r, ws.p, ws.q, ws.state, ws.condition
     inverse = M.inverse_blocks if M is not None else ws.no_preconditioner
     if coarse is not None and not (M is not None and coarse.ready):
         raise ValueError("a coarse level needs the block-Jacobi preconditioner and a coarse inverse")
     if UNROLL % SETS:
         raise ValueError(f"definite_cg.UNROLL must be a multiple of {SETS} (the state's sets), got {UNROLL}")
-    if coarse is not None:  # one thread group per aggregate, which also sums its part of P^T r
-        groups = (coarse.aggregates, coarse.members, coarse.starts, coarse.arm, coarse.free, coarse.restricted)
-        prolonged = (coarse.arm, coarse.free, coarse.aggregate, coarse.values)
-    else:
-        groups = ((len(b) + AGGREGATE_THREADS - 1) // AGGREGATE_THREADS, ws.no_nodes, ws.no_nodes, ws.no_arms,
-                  ws.no_arms, ws.no_values)
-        prolonged = (ws.no_arms, ws.no_arms, ws.no_nodes, ws.no_values)
 
     def step_precondition(set_: int):
-        wp.launch_tiled(_step_precondition, dim=[groups[0]], block_dim=AGGREGATE_THREADS, device=device,
-                        inputs=[state, set_, p, q, inverse, int(M is not None), x, r, z, *groups[1:]])
+        launch_step_precondition(ws, set_, x, inverse, coarse)
         if coarse is not None:
             coarse.apply_inverse(state, SET_SIZE * set_ + RZ)
 
-    def step_p(set_: int, first: int):
-        wp.launch(_step_p, dim=len(p), device=device, inputs=[state, set_, z, p, *prolonged, condition, first])
-
-    def start():  # r = b - A x, z = M r, p = z, their sums in set 2 (not going on: no step), then the first iteration's
-        state.zero_()
+    def start():  # r = b - A x, z = M r, p = z, their sums in the last set (not going on: no step), then the state of
+        state.zero_()  # the first iteration
         A.matvec(x, ws.b, r, -1.0, 1.0)
-        step_precondition(2)
-        step_p(2, 1)
+        step_precondition(SETS - 1)
+        launch_p_update(ws, SETS - 1, coarse, first=True)
         add_dot(ws.b, ws.b, state, TOL2)
         wp.launch(_start, dim=1, device=device, inputs=[state, ws.limits, condition])
 
@@ -339,7 +361,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             A.matvec(p, q, q, 1.0, 0.0)
             add_dot(p, q, state, SET_SIZE * (k % SETS) + PQ)
             step_precondition(k % SETS)
-            step_p(k % SETS, 0)
+            launch_p_update(ws, k % SETS, coarse, first=False)
 
     def finish():  # max |x|, its NaN count and x . b into the state, read with it
         launch_max_abs(x, ws.x_max_work)
