@@ -36,9 +36,10 @@ and iteration cap; at the end max |x|, its NaN count and x . b) is one small flo
 stopped solve change nothing (x, r and p keep their values). A pass of the captured loop therefore runs ``UNROLL``
 iterations (a multiple of 3, so that each pass starts at set 0), and a solve pays for at most UNROLL - 1 iterations
 after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
-(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py), and 6 about 2 % less than 3 per solve from 0,
-while a short solve (a step estimate) pays for up to 5 iterations after its stop instead of 2 (``fem_cg_fused_gpu``). Dot products are block-wise tile sums added
-atomically (round-off varies from run to run in the last bits, as the assembly's atomics already do).
+(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py), and 6 at most about 2 % less than 3 per
+solve from 0, while a short solve (a step estimate) pays for up to 5 iterations after its stop instead of 2
+(``fem_cg_fused_gpu``). Dot products are block-wise tile sums added atomically (round-off varies from run to run in
+the last bits, as the assembly's atomics already do).
 
 A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last captured graph between solves
 of one size (a solver's Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``,
