@@ -258,7 +258,6 @@ class CoarseSpace:
         aggregate, arm, count = _modes(np.asarray(positions_mm, dtype=np.float64), fixed, cell_mm)
         self.device = device
         self.size = 6 * count  # coarse unknowns
-        self.aggregates = count
         self.aggregate = wp.array(aggregate.astype(np.int32), dtype=int, device=device)
         order = np.argsort(aggregate, kind="stable")  # the nodes of each aggregate, one after another
         self.members = wp.array(order.astype(np.int32), dtype=int, device=device)
@@ -274,6 +273,11 @@ class CoarseSpace:
         self.updates = 0  # coarse inverses made
         self.rejected = 0  # Galerkin operators found not positive definite (the last inverse kept)
         self.seconds = {"galerkin": 0.0, "inverse": 0.0}  # ``update``'s time: A_c on the device, its inverse on the host
+
+    @property
+    def aggregates(self) -> int:
+        """The aggregates (six coarse unknowns each)."""
+        return self.size // 6
 
     def galerkin(self, H) -> np.ndarray:
         """A_c = P^T H P (m x m, float64, on the host) for a 3x3-block BSR matrix H on the device."""
