@@ -68,7 +68,7 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
     for k in sizes:
         Hk = stacked(H, k)
         A = sparse_product.block_row_operator(Hk, single_precision=True)
-        M = definite_cg.BlockJacobi(Hk)
+        M = sparse_product.BlockJacobi(Hk)
         b = wp.array(np.tile(rhs, (k, 1)), dtype=wp.vec3d, device=H.device)
         x = wp.zeros_like(b)
         workspace = definite_cg.CgWorkspace(len(b), H.device)

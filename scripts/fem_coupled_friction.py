@@ -62,13 +62,13 @@ from fem_frame_timing import run  # noqa: E402
 from transtac_sim.physics import QuasiStaticSolver  # noqa: E402
 from transtac_sim.physics.coarse_space import CoarseSpace, prolong  # noqa: E402
 from transtac_sim.physics.contact import ContactState, _f1_over_y, tangential_slip  # noqa: E402
-from transtac_sim.physics.definite_cg import BlockJacobi  # noqa: E402
 from transtac_sim.physics.device_linear import fixed_blocks, project_fixed  # noqa: E402
 from transtac_sim.physics.elasticity import CLAMPED, EXACT  # noqa: E402
 from transtac_sim.physics.host_factorisation import bsr_to_scipy  # noqa: E402
 from transtac_sim.physics.indenter_query import Indenters, penetration  # noqa: E402
 from transtac_sim.physics.newton import NewtonSteps  # noqa: E402
 from transtac_sim.physics.reductions import max_abs, negated_free  # noqa: E402
+from transtac_sim.physics.sparse_product import BlockJacobi  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SECTION = "fem_coupled_friction_cpu"

@@ -217,10 +217,10 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     if no_estimate:
         LinearSolver.solve_last = lambda self, rhs, rtol=1e-3, exact_below=0.0, refine_above=0.0: None
     if warp_spmv:
-        device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: aslinearoperator(H)
+        device_linear.block_row_operator = lambda H, **_: aslinearoperator(H)
     if float64_cg_matrix:
         float64_operator = device_linear.block_row_operator
-        device_linear.block_row_operator = lambda H, single_precision=False, rounded=None: float64_operator(H)
+        device_linear.block_row_operator = lambda H, **_: float64_operator(H)
     if warp_cg:
         device_linear.definite_cg = _warp_cg
     if cg_unroll % definite_cg.SETS:

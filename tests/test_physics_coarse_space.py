@@ -10,8 +10,8 @@ import warp as wp
 from pcg_reference import diagonal_block_inverses, pcg_iterate
 
 from transtac_sim.physics.coarse_space import CoarseSpace, _aggregates, basis_matrices, coarse_inverse
-from transtac_sim.physics.definite_cg import BlockJacobi, definite_cg
-from transtac_sim.physics.sparse_product import block_row_operator
+from transtac_sim.physics.definite_cg import definite_cg
+from transtac_sim.physics.sparse_product import BlockJacobi, block_row_operator
 
 SHAPE = (24, 20, 4)  # grid nodes along x, y, z (1 mm apart); the z = 0 layer is fixed
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])

@@ -8,8 +8,13 @@ import scipy.sparse.linalg as spla
 import warp as wp
 from pcg_reference import diagonal_block_inverses, pcg_iterate
 
-from transtac_sim.physics.definite_cg import CHECK_EVERY, UNROLL, BlockJacobi, CgWorkspace, definite_cg
-from transtac_sim.physics.sparse_product import block_row_operator
+from transtac_sim.physics.definite_cg import CHECK_EVERY, UNROLL, CgWorkspace, definite_cg
+from transtac_sim.physics.sparse_product import (
+    BlockJacobi,
+    block_row_operator,
+    invert_diagonal,
+    round_to_float32,
+)
 
 N = 200  # 3-vectors
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() else [])
@@ -181,3 +186,34 @@ def test_kept_workspace_solves_as_a_fresh_one(device: str):
     assert kept.converged and kept.x_max == np.abs(x_kept).max()
     np.testing.assert_allclose(x_kept.reshape(-1), 0.5 * before, rtol=1e-5, atol=1e-7 * np.abs(before).max())
     assert workspace.captures == (1 if device != "cpu" else 0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_set_up_made_by_the_caller_solves_as_the_operators_own(device):
+    """device_linear.py's set-up: the float32 blocks and the diagonal inverses written by the caller
+    (``round_to_float32``, ``invert_diagonal``: replayed as one graph there) and b written into the workspace's own
+    ``b`` (nothing copied) give the iterates of the operators that make their own; the operators refuse to be made
+    without the arrays they would read."""
+    A = _laplacian_3d(0.0)
+    H = _warp_bsr(A, device)
+    b = wp.array(np.random.default_rng(5).standard_normal((N, 3)), dtype=wp.vec3d, device=device)
+    own_x = wp.zeros(N, dtype=wp.vec3d, device=device)
+    own = definite_cg(block_row_operator(H, single_precision=True), b, own_x, 1e-8, 3 * N, BlockJacobi(H))
+    rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=device)
+    inverse = wp.empty(N, dtype=wp.mat33d, device=device)
+    round_to_float32(H, rounded)
+    invert_diagonal(H, inverse)
+    workspace, x = CgWorkspace(N, device), wp.zeros(N, dtype=wp.vec3d, device=device)
+    wp.copy(workspace.b, b)
+    caller = definite_cg(block_row_operator(H, single_precision=True, rounded=rounded, round_now=False),
+                         workspace.b, x, 1e-8, 3 * N, BlockJacobi(H, inverse=inverse, invert_now=False),
+                         workspace=workspace)
+    assert caller.converged and caller.iterations == own.iterations
+    tol = 0.0 if device == "cpu" else 1e-9  # on CUDA the dot products' atomics change the last bits
+    np.testing.assert_allclose(x.numpy(), own_x.numpy(), rtol=0.0, atol=tol * np.abs(own_x.numpy()).max())
+    with pytest.raises(ValueError, match="round_now"):
+        block_row_operator(H, single_precision=True, round_now=False)
+    with pytest.raises(ValueError, match="invert_now"):
+        BlockJacobi(H, invert_now=False)
+    with pytest.raises(ValueError, match="float32 buffer"):
+        round_to_float32(H, wp.empty(len(H.values) - 1, dtype=wp.mat33f, device=device))

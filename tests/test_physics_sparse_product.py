@@ -199,8 +199,8 @@ def test_device_last_resort_tries_the_float64_product_before_a_shift(monkeypatch
     ``float64_solves``; a Hessian that must be positive definite is still refused without that second solve."""
     made = device_linear.block_row_operator
 
-    def negated_when_rounded(H, single_precision=False, rounded=None):
-        op = made(H, single_precision, rounded)
+    def negated_when_rounded(H, single_precision=False, rounded=None, round_now=True):
+        op = made(H, single_precision, rounded, round_now)
         if not single_precision:
             return op
         negated = LinearOperator(op.shape, op.dtype, op.device,

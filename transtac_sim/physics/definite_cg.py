@@ -14,7 +14,7 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
              p = z + (r . z)_new / (r . z) p
     until |r| <= tol (= max(rtol |b|, atol)) or ``maxiter`` iterations.
 
-M is block-Jacobi (``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a coarse correction on
+M is block-Jacobi (sparse_product.py ``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a coarse correction on
 rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the device like
 ``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the start (r, z,
 p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
@@ -56,7 +56,6 @@ from dataclasses import dataclass
 
 import warp as wp
 from warp.optim.linear import LinearOperator
-from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import (
     AGGREGATE_THREADS,
@@ -67,7 +66,7 @@ from transtac_sim.physics.coarse_space import (
     vec6d,
 )
 from transtac_sim.physics.reductions import launch_max_abs, reduction_buffer
-from transtac_sim.physics.sparse_product import diagonal_block
+from transtac_sim.physics.sparse_product import BlockJacobi
 
 CHECK_EVERY = 3  # host path without conditional graphs: passes of the loop (UNROLL iterations each) between reads
 UNROLL = 3  # iterations per pass of the loop (a multiple of SETS)
@@ -95,43 +94,6 @@ class CgResult:
     iterations: int
     x_max: float  # max |x| over its entries and components at the end (NaN where an entry is NaN)
     x_dot_b: float  # x . b at the end (Newton's slope along its step, with b = -g: newton.py)
-
-
-@wp.kernel(enable_backward=False)
-def _inverse_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
-                      blocks: wp.array(dtype=wp.mat33d), inverse: wp.array(dtype=wp.mat33d)):
-    row = wp.tid()
-    k = diagonal_block(offsets, row_counts, columns, row)
-    if k >= 0:
-        inverse[row] = wp.inverse(blocks[k])
-    else:  # a row without a diagonal block: not preconditioned
-        inverse[row] = wp.identity(n=3, dtype=wp.float64)
-
-
-@wp.kernel(enable_backward=False)
-def _apply_blocks(inverse: wp.array(dtype=wp.mat33d), x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d),
-                  z: wp.array(dtype=wp.vec3d), alpha: wp.float64, beta: wp.float64):
-    i = wp.tid()
-    value = alpha * (inverse[i] * x[i])
-    if beta != wp.float64(0.0):
-        value += beta * y[i]
-    z[i] = value
-
-
-class BlockJacobi(LinearOperator):
-    """The block-Jacobi preconditioner of a 3x3-block matrix: the inverses of its diagonal blocks
-    (``inverse_blocks``, written into ``inverse`` where given), usable as a ``warp.optim.linear`` operator too."""
-
-    def __init__(self, A: BsrMatrix, inverse: wp.array | None = None):
-        self.inverse_blocks = inverse if inverse is not None else wp.empty(A.nrow, dtype=wp.mat33d, device=A.device)
-        wp.launch(_inverse_diagonal, dim=A.nrow, device=A.device,
-                  inputs=[A.offsets, A.row_counts, A.columns, A.values, self.inverse_blocks])
-
-        def matvec(x, y, z, alpha, beta):
-            wp.launch(_apply_blocks, dim=A.nrow, device=A.device,
-                      inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta)])
-
-        super().__init__(A.shape, A.scalar_type, A.device, matvec)
 
 
 @wp.kernel(enable_backward=False)
@@ -332,7 +294,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     M + P A_c^-1 P^T (coarse_space.py).
     ``workspace``: work arrays and the graph kept from earlier solves of the same size (a new one otherwise); the graph is
     reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same (b is copied into
-    the workspace, so it may differ)."""
+    the workspace, so it may differ; where b is the workspace's own ``b``, nothing is copied)."""
     device = b.device
     if workspace is not None and not len(workspace.r) == len(b) == len(x):
         raise ValueError(f"CG workspace of {len(workspace.r)} 3-vectors for b of {len(b)} and x of {len(x)}")
@@ -369,7 +331,8 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         wp.copy(state, ws.x_max_work, dest_offset=X_MAX, count=2)
         add_dot(x, ws.b, state, XB)
 
-    wp.copy(ws.b, b)
+    if b.ptr != ws.b.ptr:  # the caller may have written b into the workspace itself
+        wp.copy(ws.b, b)
     wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])
     if not device.is_cuda:
         start()

@@ -41,9 +41,16 @@ from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace
-from transtac_sim.physics.definite_cg import BlockJacobi, CgResult, CgWorkspace, definite_cg
+from transtac_sim.physics.definite_cg import CgResult, CgWorkspace, definite_cg
 from transtac_sim.physics.reductions import free_part
-from transtac_sim.physics.sparse_product import block_row_operator, diagonal_block
+from transtac_sim.physics.replay import GraphCache
+from transtac_sim.physics.sparse_product import (
+    BlockJacobi,
+    block_row_operator,
+    diagonal_block,
+    invert_diagonal,
+    round_to_float32,
+)
 
 
 @wp.kernel(enable_backward=False)
@@ -140,14 +147,15 @@ ESTIMATE_CAP_FACTOR = 2.0
 class DeviceWork:
     """What the device path keeps between solves, so that each solve finds the arrays of the last and its CG can launch
     the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses, the matrix's float32
-    blocks (grown to the largest matrix) and the coarse level of the two-level preconditioner (None: block-Jacobi
-    alone)."""
+    blocks (grown to the largest matrix), the coarse level of the two-level preconditioner (None: block-Jacobi
+    alone) and the graphs of the solves' set-up."""
 
     cg: CgWorkspace
     x: wp.array
     inverse: wp.array
     rounded: wp.array
     coarse: CoarseSpace | None
+    graphs: GraphCache  # the solves' set-up (``_solve_cg``)
 
 
 class DeviceSolves:
@@ -197,7 +205,8 @@ class DeviceSolves:
             self._work = DeviceWork(CgWorkspace(self._node_count, self.device),
                                     wp.empty(self._node_count, dtype=wp.vec3d, device=self.device),
                                     wp.empty(self._node_count, dtype=wp.mat33d, device=self.device),
-                                    wp.empty(0, dtype=wp.mat33f, device=self.device), coarse)
+                                    wp.empty(0, dtype=wp.mat33f, device=self.device), coarse,
+                                    GraphCache(self.device))
         return self._work
 
     def coarse_stats(self) -> dict[str, int]:
@@ -240,16 +249,25 @@ class DeviceSolves:
         key = (H.offsets.ptr, H.columns.ptr, H.row_counts.ptr if H.row_counts else 0, H.nrow)
         if self._fixed_blocks is None or self._fixed_blocks[0] != key:  # once per sparsity: the solver keeps its matrix
             self._fixed_blocks = (key, *fixed_blocks(H, self._fixed.numpy() > 0.5))
-        project_fixed(H, self._fixed, self._fixed_blocks[1:])
-        b = wp.empty_like(rhs)
-        wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
         work = self._device_work()
         if len(work.rounded) < len(H.values):  # the float32 blocks' buffer, grown to the matrix's capacity
             work.rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=self.device)
-        A = block_row_operator(H, single_precision=True, rounded=work.rounded) if single_precision \
+        fixed_blocks_ = self._fixed_blocks[1:]
+
+        def prologue() -> None:  # H projected, rounded and its diagonal inverted, x = 0: one graph (replay.py)
+            project_fixed(H, self._fixed, fixed_blocks_)
+            if single_precision:
+                round_to_float32(H, work.rounded)
+            invert_diagonal(H, work.inverse)
+            work.x.zero_()
+
+        work.graphs.run(("prologue", *key, H.values.ptr, *(a.ptr for a in fixed_blocks_), work.rounded.ptr,
+                         single_precision), (H, fixed_blocks_, work.rounded), prologue)
+        b = work.cg.b  # the CG's own right-hand side (definite_cg then copies nothing)
+        wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
+        A = block_row_operator(H, single_precision=True, rounded=work.rounded, round_now=False) if single_precision \
             else block_row_operator(H)
-        M = BlockJacobi(H, inverse=work.inverse)
-        work.x.zero_()
+        M = BlockJacobi(H, inverse=work.inverse, invert_now=False)
         result, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)
         if not result.converged:
             return None

@@ -87,7 +87,12 @@ from scipy.spatial.transform import Rotation
 
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
 from transtac_sim.physics.friction_lag import FrictionLag
-from transtac_sim.physics.reductions import max_abs, negated_free_and_load, step_summary
+from transtac_sim.physics.reductions import (
+    launch_negated_free_and_load,
+    max_abs,
+    read_negated_free,
+    step_summary,
+)
 from transtac_sim.physics.warm_start import lifts_off
 
 #: Inexact Newton (Eisenstat & Walker 1996): the CG (device; on the host, preconditioned with the kept factorisation,
@@ -113,6 +118,14 @@ STALL_ALPHA = 1.0 / 16.0
 #: newton_tol_mm: there the step's length decides the convergence test, and a loosely solved step is shorter
 #: (10 took 13 % more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
 EXACT_BELOW = 100.0
+
+
+@wp.kernel(enable_backward=False)
+def _trial_point(u: wp.array(dtype=wp.vec3d), du: wp.array(dtype=wp.vec3d), alpha: wp.float64,
+                 out: wp.array(dtype=wp.vec3d)):
+    """out = u + alpha du (mm, per node): a line search's trial, written where a copy and an axpy took two launches."""
+    i = wp.tid()
+    out[i] = u[i] + alpha * du[i]
 
 
 class NewtonSteps(FrictionLag):
@@ -175,8 +188,7 @@ class NewtonSteps(FrictionLag):
                     continue
                 energy_here = None
                 if estimate is not None:
-                    wp.copy(self._u_try.dof_values, self.u.dof_values)
-                    fem.linalg.array_axpy(x=estimate, y=self._u_try.dof_values, alpha=1.0)
+                    self._set_trial(estimate, 1.0)
                     if self._min_det(self._u_try) > 0.0:
                         wp.copy(self.u.dof_values, self._u_try.dof_values)
                 pen = self._raise_stiffness(ind, raises)
@@ -214,8 +226,7 @@ class NewtonSteps(FrictionLag):
             may_predict = lifting and ind.count > 0 and alpha == 1.0 and not self._linear.last_shift
             newton_step = None  # (du, du . rhs, max |du|, its next alpha) while a predicted step is tried in its place
             while alpha > 1e-6:
-                wp.copy(self._u_try.dof_values, self.u.dof_values)
-                fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=alpha)
+                self._set_trial(du, alpha)
                 e_try, det_try = self._energy_and_min_det(self._u_try, ind)
                 if np.isfinite(e_try) and e_try <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
                     if (det_try if det_try is not None else self._min_det(self._u_try)) > 0.0:
@@ -246,8 +257,7 @@ class NewtonSteps(FrictionLag):
             else:  # converged (a full step below the tolerance) or, below 100 x tol, E differs by round-off only (not
                 # where |g| is above max_residual_n: there a failed line search fails the step)
                 energy_here = None
-                wp.copy(self._u_try.dof_values, self.u.dof_values)
-                fem.linalg.array_axpy(x=du, y=self._u_try.dof_values, alpha=1.0)
+                self._set_trial(du, 1.0)
                 if (step_max >= 100.0 * tol or not self._short_step_converges(g_norm)
                         or not self._min_det(self._u_try) > 0.0):
                     why = "line search failed" + (" (every step tried made an inverted element, det F <= 0)"
@@ -269,21 +279,36 @@ class NewtonSteps(FrictionLag):
                 return False, iterations, (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} "
                                            "or less by the line search"), 0.0
 
+    def _set_trial(self, du: wp.array, alpha: float) -> None:
+        """u_try = u + alpha du, in one launch (``_trial_point``)."""
+        wp.launch(_trial_point, dim=len(du), device=self.device,
+                  inputs=[self.u.dof_values, du, wp.float64(alpha), self._u_try.dof_values])
+
     def _read_gradient(self, ind, lag_change: bool, energy: bool) -> tuple:
         """(-g and |g| on the free components, the normal load on the support, |u - u_lag| where ``lag_change``, E(u)
         where ``energy`` on a GPU) at self.u, in one read (None for what is not asked for): the barrier's energy (for
         the Hessian, ``_barrier_acts``), on a GPU whether the contact Hessian's side subset still holds
         (``_contact_subset``), friction's lag distance (``_lag_change``) and E (for the line search, which would read it
         otherwise; on the CPU, where a read costs no wait, E is left to it: an E evaluated here is wasted where the pass
-        moves the lag or converges) are reduced on the device and read with |g|."""
+        moves the lag or converges) are reduced on the device and read with |g|. -g goes into the kept ``self._rhs``
+        (the next call overwrites it), and the reductions and copies before the read are replayed as one CUDA graph
+        on a GPU."""
         g = self._gradient(ind)
         coverage = self.device.is_cuda and ind.count > 0  # the contact side subset's flag (``_gradient`` launched it)
         energy = energy and self.device.is_cuda
         if energy:
             self._launch_energy(self.u, ind)
         also = ((self._barrier_sum, 1),) + (((self._contact_sides.stale, 1),) if coverage else ()) \
-            + (((self._energy_sum, 1),) if energy else ()) + (((self._launch_lag_change(), 2),) if lag_change else ())
-        rhs, g_norm, load, barrier_energy, *more = negated_free_and_load(g, self._fixed_mask, also)
+            + (((self._energy_sum, 1),) if energy else ()) + (((self._lag_work, 2),) if lag_change else ())
+
+        def launches() -> None:  # into the kept rhs and output: one graph per combination of what is read (replay.py)
+            if lag_change:
+                self._launch_lag_change()
+            launch_negated_free_and_load(g, self._fixed_mask, self._rhs, self._gradient_read, also)
+
+        self._graphs.run(("gradient_read", coverage, energy, lag_change), (), launches)
+        rhs, g_norm, load, barrier_energy, *more = read_negated_free(self._rhs, self._gradient_read,
+                                                                     2 + sum(count for _, count in also))
         self.barrier_energy_read(barrier_energy)
         if coverage:
             self.contact_stale_read(more.pop(0))

@@ -246,14 +246,32 @@ def negated_free_and_load(g: wp.array, fixed: wp.array, also: tuple[tuple[wp.arr
     k) pairs whose first k values are read with them and returned after them, in order (the caller's scalars, without
     reads of their own)."""
     rhs = wp.empty_like(g)
-    extra = sum(count for _, count in also)
-    out = wp.empty(max(2 * (1 + reduction_blocks(g.device)), 2 + extra), dtype=wp.float64, device=g.device)
+    out = negated_free_buffer(sum(count for _, count in also), g.device)
+    return read_negated_free(rhs, out, launch_negated_free_and_load(g, fixed, rhs, out, also))
+
+
+def negated_free_buffer(also: int, device) -> wp.array:
+    """The output of ``launch_negated_free_and_load`` with ``also`` of the caller's values in all."""
+    return wp.empty(max(2 * (1 + reduction_blocks(device)), 2 + also), dtype=wp.float64, device=device)
+
+
+def launch_negated_free_and_load(g: wp.array, fixed: wp.array, rhs: wp.array, out: wp.array,
+                                 also: tuple[tuple[wp.array, int], ...] = ()) -> int:
+    """``negated_free_and_load`` without its allocations and read (launches only, so that a caller may replay them as
+    a graph, replay.py): -g on the free components into ``rhs``, [|rhs|^2, the sum of g's fixed z components, then
+    the ``also`` values] into ``out`` (``negated_free_buffer``); returns how many values ``read_negated_free``
+    reads."""
     _launch(_negated_free, [g, fixed, rhs], out, (SUM, SUM))
     at = 2
     for array, count in also:  # over partials that the combine has used
         wp.copy(out, array, dest_offset=at, count=count)
         at += count
-    values = [float(v) for v in out[:at].numpy()]
+    return at
+
+
+def read_negated_free(rhs: wp.array, out: wp.array, count: int) -> tuple:
+    """(rhs, |rhs|, |the load|, the ``also`` values) from ``launch_negated_free_and_load``'s ``out``, in one read."""
+    values = [float(v) for v in out[:count].numpy()]
     return (rhs, values[0] ** 0.5, abs(values[1]), *values[2:])
 
 

@@ -36,7 +36,7 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.material import ElasticMaterial, neo_hookean_parameters
 from transtac_sim.physics.newton import NewtonSteps
 from transtac_sim.physics.point_displacement import PointDisplacement
-from transtac_sim.physics.reductions import reduction_buffer
+from transtac_sim.physics.reductions import negated_free_buffer, reduction_buffer
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solver's API)
     FrameResult,
@@ -146,6 +146,9 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self._g = wp.empty_like(self.u.dof_values)  # ``_gradient``'s result (N per node)
         self._barrier_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # the barrier's energy at ``_gradient``
         self._lag_work = reduction_buffer(2, self.device)  # friction_lag.py ``_launch_lag_change``
+        self._rhs = wp.empty_like(self.u.dof_values)  # -g on the free dofs (newton.py ``_read_gradient``)
+        self._gradient_read = negated_free_buffer(5, self.device)  # |g|, the load and what is read with them
+        self._wrench_work = wp.zeros(6 * len(self.indenters), dtype=wp.float64, device=self.device)  # ``_wrench``
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
         self._graphs = GraphCache(self.device)  # energy, det F, gradient and Hessian as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
@@ -354,13 +357,7 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
             )
         ind = self._last_ind
         lag_residual = self._friction_lag_residual(ind)
-        wrench = np.zeros((len(self.indenters), 6))
-        for i in range(len(self.indenters)):
-            for c in range(6):
-                wrench[i, c] = fem.integrate(
-                    contact.wrench_form, quadrature=self._q_contact, fields=self._contact_fields(self.u),
-                    values=self._contact_values(ind) | {"which": i, "component": c},
-                )
+        wrench = self._wrench(ind)
         record = SolverRecord(
             converged=True,
             iterations=total_iterations,
@@ -382,6 +379,20 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self.frame_index += 1
         return FrameResult(self.nodal_displacement()[self._node_of_vertex], wrench[:, :3], wrench[:, 3:], record,
                            poses)
+
+    def _wrench(self, ind) -> np.ndarray:
+        """Each indenter's force (N) and torque about its reference point (N mm) at self.u, (indenters, 6): one
+        integral per component into a kept array, replayed as one CUDA graph on a GPU (replay.py), and one read."""
+        wrench = self._wrench_work
+
+        def launches() -> None:
+            for k in range(wrench.shape[0]):
+                fem.integrate(contact.wrench_form, quadrature=self._q_contact, fields=self._contact_fields(self.u),
+                              values=self._contact_values(ind) | {"which": k // 6, "component": k % 6},
+                              output=wrench[k:k + 1])
+
+        self._graphs.run(("wrench", self.u.dof_values.ptr, id(ind), float(ind.stiffness)), (self.u, ind), launches)
+        return wrench.numpy().reshape(len(self.indenters), 6).copy()  # on the CPU numpy() is a view of the kept array
 
     def snapshot(self):
         """Opaque copy of the solver state (to try a frame and go back, e.g. press-to-force)."""

@@ -1,4 +1,5 @@
-"""The Newton systems' matrix-vector product on the device: z = alpha A x + beta y for a 3x3-block CSR matrix.
+"""The Newton systems' matrix-vector product on the device, z = alpha A x + beta y for a 3x3-block CSR matrix, and the
+block-Jacobi preconditioner of such a matrix (``BlockJacobi``, the device CG's: definite_cg.py).
 
 The device CG (device_linear.py) spends most of its time in this product: on the press-and-slide Hessian (97k dofs, about
 1.1M blocks of 3x3 float64, 80 MB) ``warp.sparse.bsr_mv`` took 123 us per call on an H100
@@ -135,21 +136,30 @@ def _round_to_float32(entries: wp.array(dtype=wp.float64), rounded: wp.array(dty
     rounded[i] = wp.float32(entries[i])
 
 
-def block_row_operator(A: BsrMatrix, single_precision: bool = False,
-                       rounded: wp.array | None = None) -> LinearOperator:
+def round_to_float32(A: BsrMatrix, rounded: wp.array) -> None:
+    """A's blocks rounded to float32 into ``rounded`` (mat33f, at least as many blocks as A.values; launch only)."""
+    if len(rounded) < len(A.values):
+        raise ValueError(f"float32 buffer of {len(rounded)} blocks for a matrix of {len(A.values)}")
+    wp.launch(_round_to_float32, dim=9 * len(A.values), device=A.device,
+              inputs=[A.values.view(wp.float64).flatten(), rounded.view(wp.float32).flatten()])
+
+
+def block_row_operator(A: BsrMatrix, single_precision: bool = False, rounded: wp.array | None = None,
+                       round_now: bool = True) -> LinearOperator:
     """``A`` (3x3 float64 blocks) as a ``warp.optim.linear`` operator whose product is ``_block_row_product``;
     graph-capturable (one launch, no allocation). ``single_precision``: the product reads A's blocks rounded to float32,
-    copied here into ``rounded`` where it is given and large enough (later changes to A are not seen). The operator's
-    ``graph_key`` names the arrays its product reads (definite_cg.py reuses a graph captured with the same ones)."""
+    copied here into ``rounded`` where it is given (``round_to_float32``; later changes to A are not seen), or, with
+    ``round_now`` False, already copied there by the caller. The operator's ``graph_key`` names the arrays its product
+    reads (definite_cg.py reuses a graph captured with the same ones)."""
     if A.block_shape != (3, 3) or A.scalar_type != wp.float64:
         raise ValueError(f"expected 3x3 float64 blocks, got {A.block_shape} {A.scalar_type}")
     blocks = A.values
     if single_precision:
-        if rounded is not None and len(rounded) < len(A.values):
-            raise ValueError(f"float32 buffer of {len(rounded)} blocks for a matrix of {len(A.values)}")
+        if rounded is None and not round_now:
+            raise ValueError("round_now=False needs the rounded blocks")
         blocks = rounded if rounded is not None else wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
-        wp.launch(_round_to_float32, dim=9 * len(A.values), device=A.device,
-                  inputs=[A.values.view(wp.float64).flatten(), blocks.view(wp.float32).flatten()])
+        if round_now:
+            round_to_float32(A, blocks)
 
     if A.device.is_cuda:
         kernel, groups, threads, rows = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,
@@ -166,3 +176,49 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False,
     row_counts = A.row_counts.ptr if A.row_counts is not None else None
     operator.graph_key = (A.nrow, A.offsets.ptr, row_counts, A.columns.ptr, blocks.ptr)
     return operator
+
+
+@wp.kernel(enable_backward=False)
+def _inverse_diagonal(offsets: wp.array(dtype=int), row_counts: wp.array(dtype=int), columns: wp.array(dtype=int),
+                      blocks: wp.array(dtype=wp.mat33d), inverse: wp.array(dtype=wp.mat33d)):
+    row = wp.tid()
+    k = diagonal_block(offsets, row_counts, columns, row)
+    if k >= 0:
+        inverse[row] = wp.inverse(blocks[k])
+    else:  # a row without a diagonal block: not preconditioned
+        inverse[row] = wp.identity(n=3, dtype=wp.float64)
+
+
+@wp.kernel(enable_backward=False)
+def _apply_blocks(inverse: wp.array(dtype=wp.mat33d), x: wp.array(dtype=wp.vec3d), y: wp.array(dtype=wp.vec3d),
+                  z: wp.array(dtype=wp.vec3d), alpha: wp.float64, beta: wp.float64):
+    i = wp.tid()
+    value = alpha * (inverse[i] * x[i])
+    if beta != wp.float64(0.0):
+        value += beta * y[i]
+    z[i] = value
+
+
+def invert_diagonal(A: BsrMatrix, inverse: wp.array) -> None:
+    """The inverses of A's 3x3 diagonal blocks into ``inverse`` (one per block row; launch only)."""
+    wp.launch(_inverse_diagonal, dim=A.nrow, device=A.device,
+              inputs=[A.offsets, A.row_counts, A.columns, A.values, inverse])
+
+
+class BlockJacobi(LinearOperator):
+    """The block-Jacobi preconditioner of a 3x3-block matrix: the inverses of its diagonal blocks
+    (``inverse_blocks``, written into ``inverse`` where given, or, with ``invert_now`` False, already written there by
+    the caller with ``invert_diagonal``), usable as a ``warp.optim.linear`` operator too."""
+
+    def __init__(self, A: BsrMatrix, inverse: wp.array | None = None, invert_now: bool = True):
+        if inverse is None and not invert_now:
+            raise ValueError("invert_now=False needs the inverse blocks")
+        self.inverse_blocks = inverse if inverse is not None else wp.empty(A.nrow, dtype=wp.mat33d, device=A.device)
+        if invert_now:
+            invert_diagonal(A, self.inverse_blocks)
+
+        def matvec(x, y, z, alpha, beta):
+            wp.launch(_apply_blocks, dim=A.nrow, device=A.device,
+                      inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta)])
+
+        super().__init__(A.shape, A.scalar_type, A.device, matvec)
