@@ -13,7 +13,8 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   the gradient's kernel returns at once in each tet whose check points all have det F >= j_hat, barrier_terms.py, so
   that the energy need not be read first);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the
-  largest penetration and max |u - u_lag| for friction's lag test are reduced there (reductions.py), and so are the
+  largest penetration (contact_records.py) and max |u - u_lag| for friction's lag test are reduced there
+  (reductions.py), and so are the
   contact Hessian's stiff points (with the
   fixed dofs' projection on the blocks it changes only, device_linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster
   in three of four runs, then 0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``); on a GPU Newton reads
@@ -36,7 +37,13 @@ from warp.sparse import BsrMatrix
 from transtac_sim.physics import contact, elasticity
 from transtac_sim.physics.barrier_terms import BarrierCheckPoints, BarrierHessian
 from transtac_sim.physics.definite_cg import add_dot
-from transtac_sim.physics.reductions import extremes, launch_extremes, negated_free, read_extremes
+from transtac_sim.physics.reductions import (
+    launch_extremes,
+    launch_negated_free_and_load,
+    negated_free_buffer,
+    read_extremes,
+    read_negated_free,
+)
 from transtac_sim.physics.sparse_product import block_row_operator
 from transtac_sim.physics.volumetric_hessian import TetGeometry, VolumetricHessian
 
@@ -81,36 +88,6 @@ class Assembly:
 
     def _contact_values(self, ind) -> dict:
         return {"ind": ind, "st": self._contact_state}
-
-    def _update_lag(self, ind, u=None) -> None:
-        """Friction's lagged normal pressure and tangent plane, from the field ``u`` (default u_lag)."""
-        if ind.count:
-            fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": (self.u_lag if u is None else u).trace()},
-                            values=self._contact_values(ind))
-
-    def _friction_lag_residual(self, ind) -> float:
-        """|g| (N, on the free dofs) at self.u with friction's lagged pressure and tangent plane taken at u: the force
-        imbalance that the lag leaves at a converged state. Small where the lag converged (Newton moves it only while it
-        is 10 newton_tol_mm or more from u: 1e-6 to 1e-4 N in BENCHMARKS.md ``fem_friction_lag_residual``); larger where
-        ``friction_lag_moves`` ran out first. 0 without friction. The lagged state is put back, and so are the gradient
-        and the contact state (traction, stiffnesses) at u with it."""
-        if not ind.count or not any(i.friction > 0 for i in self.indenters):
-            return 0.0
-        st = self._contact_state
-        kept = (wp.clone(st.lag_g), wp.clone(st.lag_n))
-        self._update_lag(ind, self.u)
-        residual = self._free_norm(self._gradient(ind))
-        wp.copy(st.lag_g, kept[0])
-        wp.copy(st.lag_n, kept[1])
-        self._gradient(ind)
-        return residual
-
-    def _keep_stick(self, ind) -> None:
-        """Friction's stretch at the converged u, carried into the next step (contact.py ``stick_form``); left at 0
-        without ``SolverSettings.friction_memory`` (each step's slip then starts from no traction)."""
-        if ind.count and self.settings.friction_memory:
-            fem.interpolate(contact.stick_form, at=self._q_contact, fields=self._contact_fields(self.u),
-                            values=self._contact_values(ind))
 
     def _barrier_values(self) -> dict:
         return {"params": self._params, "stiffness": self.settings.barrier_stiffness,
@@ -367,8 +344,13 @@ class Assembly:
         return slots
 
     def _free_norm(self, g: wp.array) -> float:
-        """|g| over the free components (N)."""
-        return negated_free(g, self._fixed_mask)[1]
+        """|g| over the free components (N): into kept buffers, replayed as a CUDA graph per g on a GPU (replay.py)."""
+        if self._free_norm_work is None:
+            self._free_norm_work = (wp.empty_like(g), negated_free_buffer(0, self.device))
+        rhs, out = self._free_norm_work
+        self._graphs.run(("free_norm", g.ptr), (g,),
+                         lambda: launch_negated_free_and_load(g, self._fixed_mask, rhs, out))
+        return read_negated_free(rhs, out, 2)[1]
 
     def _min_det(self, u) -> float:
         """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN); replayed as a CUDA
@@ -384,12 +366,3 @@ class Assembly:
             launch_extremes(J, out)
 
         self._graphs.run(("min_det", u.dof_values.ptr), (u,), launches)
-
-    def _max_penetration(self, ind) -> float:
-        """The largest penetration (mm) at the contact quadrature points."""
-        if not ind.count:
-            return 0.0
-        pen = wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device)
-        fem.interpolate(contact.penetration_form, dest=pen, at=self._q_contact, fields={"u": self.u.trace()},
-                        values={"ind": ind})
-        return extremes(pen)[1]

@@ -76,6 +76,13 @@ norm with the barrier's energy, friction's lag distance and, on a GPU, the conta
 the line search needs it (``_read_gradient``); a device step's slope and length, and a step estimate's length, come
 with the CG's state (``LinearSolver.known_summary``): 6.4 reads per Newton iteration, frames 0.74-0.87x the time on an
 H100 (about 0.13-0.16 s), the Newton iterations within the runs' spread.
+
+Issue 12, ninth pass (scripts/fem_gpu_gaps.py; BENCHMARKS.md ``fem_host_operations_gpu``): the GPU still waited for the
+host about a fifth of each frame, spread over many host operations of 60-150 us each. The gradient's reductions and
+what is read with them are replayed as one graph into kept buffers (``_read_gradient``), a trial point is one launch
+(``_set_trial``), and a solve's set-up, friction's lag update, the largest penetration and the frame's wrench are
+graphs too (device_linear.py, contact_records.py): press_slide frames 1-9 0.91-0.94x the time in one lease, about
+0.103-0.107 s per frame.
 """
 
 from __future__ import annotations

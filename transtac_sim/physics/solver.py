@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from transtac_sim.physics import contact, indenter_query
 from transtac_sim.physics.assembly import Assembly
 from transtac_sim.physics.contact_prediction import ContactPrediction
+from transtac_sim.physics.contact_records import ContactRecords
 from transtac_sim.physics.contact_sides import ContactSides
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
@@ -56,7 +57,7 @@ def _interpolate_pose(A: np.ndarray, B: np.ndarray, t: float) -> np.ndarray:
     return P
 
 
-class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, PointDisplacement):
+class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, ContactPrediction, PointDisplacement):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
@@ -149,6 +150,9 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self._rhs = wp.empty_like(self.u.dof_values)  # -g on the free dofs (newton.py ``_read_gradient``)
         self._gradient_read = negated_free_buffer(5, self.device)  # |g|, the load and what is read with them
         self._wrench_work = wp.zeros(6 * len(self.indenters), dtype=wp.float64, device=self.device)  # ``_wrench``
+        self._lag_kept = None  # friction's lag kept while ``_friction_lag_residual`` moves it (made on first use)
+        self._penetration_work = None  # ``_max_penetration``'s values and extremes (made on first use)
+        self._free_norm_work = None  # ``_free_norm``'s -g and sums (made on first use)
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
         self._graphs = GraphCache(self.device)  # energy, det F, gradient and Hessian as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
@@ -379,20 +383,6 @@ class QuasiStaticSolver(Assembly, NewtonSteps, WarmStart, ContactPrediction, Poi
         self.frame_index += 1
         return FrameResult(self.nodal_displacement()[self._node_of_vertex], wrench[:, :3], wrench[:, 3:], record,
                            poses)
-
-    def _wrench(self, ind) -> np.ndarray:
-        """Each indenter's force (N) and torque about its reference point (N mm) at self.u, (indenters, 6): one
-        integral per component into a kept array, replayed as one CUDA graph on a GPU (replay.py), and one read."""
-        wrench = self._wrench_work
-
-        def launches() -> None:
-            for k in range(wrench.shape[0]):
-                fem.integrate(contact.wrench_form, quadrature=self._q_contact, fields=self._contact_fields(self.u),
-                              values=self._contact_values(ind) | {"which": k // 6, "component": k % 6},
-                              output=wrench[k:k + 1])
-
-        self._graphs.run(("wrench", self.u.dof_values.ptr, id(ind), float(ind.stiffness)), (self.u, ind), launches)
-        return wrench.numpy().reshape(len(self.indenters), 6).copy()  # on the CPU numpy() is a view of the kept array
 
     def snapshot(self):
         """Opaque copy of the solver state (to try a frame and go back, e.g. press-to-force)."""
