@@ -40,12 +40,13 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
-#: the solver's methods marked as host ranges (newton.py, assembly.py, solver.py, friction_lag.py, warm_start.py,
-#: contact_prediction.py; linear.py, device_linear.py)
+#: the solver's methods marked as host ranges (newton.py, assembly.py, contact_records.py, solver.py, friction_lag.py,
+#: warm_start.py, contact_prediction.py; linear.py, device_linear.py)
 MARKED = {
-    QuasiStaticSolver: ("solve_frame", "_solve_step", "_newton", "_read_gradient", "_gradient", "_launch_energy",
-                        "_energy", "_energy_and_min_det", "_hessian", "_contact_subset", "_min_det", "_max_penetration",
-                        "_raise_stiffness", "_move_lag", "_update_lag", "_launch_lag_change", "_warm_start",
+    QuasiStaticSolver: ("solve_frame", "_solve_step", "_newton", "_read_gradient", "_gradient", "_set_trial",
+                        "_launch_energy", "_energy", "_energy_and_min_det", "_hessian", "_contact_subset", "_min_det",
+                        "_free_norm", "_max_penetration", "_raise_stiffness", "_move_lag", "_update_lag",
+                        "_launch_lag_change", "_friction_lag_residual", "_keep_stick", "_wrench", "_warm_start",
                         "_predict_contact", "_indenter_struct"),
     LinearSolver: ("solve", "solve_last", "_solve_cg", "_cg", "_known_solution", "known_summary"),
 }
@@ -64,7 +65,8 @@ class HostRange:
 
 def host_segments(ranges: list[HostRange]) -> list[tuple[float, float, tuple[str, ...]]]:
     """The host timeline as (start, end, the names of the ranges open, outermost first) segments, from properly nested
-    ranges of one thread; a stretch with no range open has the empty path."""
+    ranges of one thread; a stretch with no range open has the empty path. Ranges of no length are left out."""
+    ranges = [r for r in ranges if r.end > r.start]
     events = sorted([(r.start, 1, -r.end, r.name) for r in ranges] + [(r.end, 0, -r.end, r.name) for r in ranges])
     segments, stack, last = [], [], None
     for t, opening, _, name in events:
@@ -134,11 +136,11 @@ READ = "read (array.numpy)"
 def install_marks(record_function, warp_calls: bool = False) -> callable:
     """Marks the solver's methods (``MARKED``), device reads and, with ``warp_calls``, Warp's launch, capture_launch and
     copy; returns a function that puts the originals back."""
-    originals = []
+    originals = []  # (owner, name, the original or None where the owner only inherited it)
     for cls, names in MARKED.items():
         for name in names:
             if hasattr(cls, name):
-                originals.append((cls, name, getattr(cls, name)))
+                originals.append((cls, name, cls.__dict__.get(name)))
                 setattr(cls, name, _mark(f"{cls.__name__}.{name}", getattr(cls, name), record_function))
     for owner, name, label in ((warp_context, "launch", "wp.launch"), (wp, "launch", "wp.launch"),
                                (warp_context, "capture_launch", "wp.capture_launch"),
@@ -159,7 +161,10 @@ def install_marks(record_function, warp_calls: bool = False) -> callable:
 
     def uninstall() -> None:
         for owner, name, original in reversed(originals):
-            setattr(owner, name, original)
+            if original is None:
+                delattr(owner, name)
+            else:
+                setattr(owner, name, original)
 
     return uninstall
 

@@ -31,3 +31,38 @@ def test_idle_is_charged_by_overlap_and_the_uncovered_rest_to_no_range():
     charged = fem_gpu_gaps.idle_by_path([(1.0, 3.0), (4.0, 10.0)], segments)
     assert charged == pytest.approx({("a",): 1.0, ("a", "b"): 2.0, ("c",): 1.0, (): 4.0})
     assert sum(charged.values()) == pytest.approx(8.0)  # every idle microsecond once
+
+
+def test_ranges_of_no_length_are_left_out():
+    ranges = [HostRange("frame", 0.0, 4.0), HostRange("read", 2.0, 2.0), HostRange("gradient", 2.0, 3.0)]
+    assert fem_gpu_gaps.host_segments(ranges) == [
+        (0.0, 2.0, ("frame",)), (2.0, 3.0, ("frame", "gradient")), (3.0, 4.0, ("frame",))]
+
+
+def test_marks_are_put_back_as_they_were():
+    """The solver's methods, inherited ones included, and Warp's functions are their originals again afterwards; the
+    marks name what they wrap."""
+    import contextlib
+
+    import warp as wp
+    from fem_gpu_gaps import MARKED
+
+    names = []
+
+    @contextlib.contextmanager
+    def record_function(name):
+        names.append(name)
+        yield
+
+    before = {(cls, name): (cls.__dict__.get(name), getattr(cls, name)) for cls, ns in MARKED.items() for name in ns}
+    launch, numpy = wp.launch, wp.array.numpy
+    uninstall = fem_gpu_gaps.install_marks(record_function, warp_calls=True)
+    try:
+        assert wp.launch is not launch and wp.array.numpy is not numpy
+        wp.copy(wp.zeros(3, dtype=float, device="cpu"), wp.ones(3, dtype=float, device="cpu"))
+        assert names == ["wp.copy"]  # a CPU array's read is not marked: it waits for nothing
+    finally:
+        uninstall()
+    assert wp.launch is launch and wp.array.numpy is numpy
+    after = {(cls, name): (cls.__dict__.get(name), getattr(cls, name)) for cls, ns in MARKED.items() for name in ns}
+    assert after == before

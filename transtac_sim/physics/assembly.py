@@ -14,10 +14,9 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
   that the energy need not be read first);
 - host reads are few: E(u) is summed on the device and read once per evaluation (``_energy``), the smallest det F, the
   largest penetration (contact_records.py) and max |u - u_lag| for friction's lag test are reduced there
-  (reductions.py), and so are the
-  contact Hessian's stiff points (with the
-  fixed dofs' projection on the blocks it changes only, device_linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster
-  in three of four runs, then 0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``); on a GPU Newton reads
+  (reductions.py), and so are the contact Hessian's stiff points (with the fixed dofs' projection on the blocks it
+  changes only, device_linear.py: press_slide frames 1-9 on an H100 1.15-1.2x faster in three of four runs, then
+  0.91-0.98x the time again; BENCHMARKS.md ``fem_host_reads_gpu``); on a GPU Newton reads
   the barrier's energy, the contact side subset's coverage and E with the gradient's norm (``barrier_energy_read``,
   ``contact_stale_read``, newton.py ``_read_gradient``), and the line search E with det F, in one read each
   (BENCHMARKS.md ``fem_folded_reads_gpu``);
@@ -134,10 +133,14 @@ class Assembly:
         needed)."""
         if not self.device.is_cuda:
             return self._energy(u, ind), None
-        self._launch_energy(u, ind)
-        self._launch_min_det(u)
         out = self._det_work[1]
-        wp.copy(out, self._energy_sum, dest_offset=3, count=1)  # over a partial that the combine has used
+
+        def launches() -> None:  # one graph per field, indenter struct and contact stiffness (replay.py)
+            self._energy_terms(u, ind)
+            self._min_det_terms(u)
+            wp.copy(out, self._energy_sum, dest_offset=3, count=1)  # over a partial that the combine has used
+
+        self._graphs.run(("trial", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind), launches)
         (low, _), energy = read_extremes(out, also=1)
         return energy[0], low
 
@@ -162,25 +165,35 @@ class Assembly:
         """Gradient at self.u (N, vec3d per node), written into the kept ``self._g`` (the next call overwrites it);
         also stores there the contact state and the barrier's energy, which ``_hessian`` uses (``_barrier_acts``). The
         terms are added in the order of the energy (elastic, barrier, contact). On a GPU the launches are replayed as
-        CUDA graphs (replay.py): the elastic terms with the barrier's energy summed alongside, the barrier's gradient
-        (added only in the tets where some det F is below j_hat, found on the device; barrier_terms.py), then the
-        contact state and gradient; nothing is read (the
+        one CUDA graph per displacement field, indenter struct and contact stiffness (replay.py): the elastic terms
+        with the barrier's energy summed alongside, the barrier's gradient (added only in the tets where some det F is
+        below j_hat, found on the device; barrier_terms.py), then the contact state and gradient; nothing is read (the
         caller may read the barrier's energy with its own read, ``barrier_energy_read``). On the CPU, where a read
         costs no wait, the energy is read first and the barrier's gradient launched only where it is not 0 (the usual
         case)."""
         u = self.u
-        self._graphs.run(("elastic_gradient", u.dof_values.ptr), (u,), self._elastic_gradient_terms)
-        self._barrier_energy = None
-        if self.settings.barrier_det_f > 0.0 and (self.device.is_cuda or self._barrier_acts):
-            check = self._barrier_check_points()
-            s = self.settings
-            self._graphs.run(("barrier_gradient", u.dof_values.ptr), (u,), lambda: check.add_gradient_to(
-                self._g, u.dof_values, self._params, s.barrier_stiffness, s.barrier_det_f))
+        if self.device.is_cuda:
+            self._graphs.run(("gradient", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind),
+                             lambda: self._gradient_terms(ind, barrier=self.settings.barrier_det_f > 0.0))
+            self._barrier_energy = None
+        else:
+            self._elastic_gradient_terms()
+            self._barrier_energy = None
+            self._gradient_terms(ind, barrier=self._barrier_acts, elastic=False)
         self._contact_stale = None
-        if ind.count:
-            self._graphs.run(("contact_gradient", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind),
-                             lambda: self._contact_gradient_terms(ind))
         return self._g
+
+    def _gradient_terms(self, ind, barrier: bool, elastic: bool = True) -> None:
+        """The gradient's terms into ``self._g`` (launches only): the elastic ones (unless ``elastic`` is False: the
+        caller launched them), the barrier's where ``barrier``, the contact's where an indenter is given."""
+        if elastic:
+            self._elastic_gradient_terms()
+        if barrier:
+            s = self.settings
+            self._barrier_check_points().add_gradient_to(self._g, self.u.dof_values, self._params, s.barrier_stiffness,
+                                                         s.barrier_det_f)
+        if ind.count:
+            self._contact_gradient_terms(ind)
 
     @property
     def _barrier_acts(self) -> bool:
@@ -344,10 +357,13 @@ class Assembly:
         return slots
 
     def _free_norm(self, g: wp.array) -> float:
-        """|g| over the free components (N): into kept buffers, replayed as a CUDA graph per g on a GPU (replay.py)."""
+        """|g| over the free components (N) of ``g`` (a gradient: vec3d per node), into kept buffers, replayed as a
+        CUDA graph per g on a GPU (replay.py)."""
         if self._free_norm_work is None:
-            self._free_norm_work = (wp.empty_like(g), negated_free_buffer(0, self.device))
+            self._free_norm_work = (wp.empty_like(self._g), negated_free_buffer(0, self.device))
         rhs, out = self._free_norm_work
+        if g.shape != rhs.shape:
+            raise ValueError(f"a gradient of {g.shape[0]} nodes for a mesh of {rhs.shape[0]}")
         self._graphs.run(("free_norm", g.ptr), (g,),
                          lambda: launch_negated_free_and_load(g, self._fixed_mask, rhs, out))
         return read_negated_free(rhs, out, 2)[1]
@@ -359,10 +375,10 @@ class Assembly:
         return read_extremes(self._det_work[1])[0]
 
     def _launch_min_det(self, u) -> None:
+        self._graphs.run(("min_det", u.dof_values.ptr), (u,), lambda: self._min_det_terms(u))
+
+    def _min_det_terms(self, u) -> None:
+        """det F at the barrier's check points and their extremes into ``self._det_work`` (launches only)."""
         J, out = self._det_work
-
-        def launches():
-            fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
-            launch_extremes(J, out)
-
-        self._graphs.run(("min_det", u.dof_values.ptr), (u,), launches)
+        fem.interpolate(elasticity.det_form, dest=J, at=self._q_det, fields={"u": u})
+        launch_extremes(J, out)

@@ -27,8 +27,8 @@ class ContactRecords:
         if ind.count:
             field = self.u_lag if u is None else u
             self._graphs.run(("lag", field.dof_values.ptr, id(ind), float(ind.stiffness)), (field, ind),
-                             lambda: fem.interpolate(contact.lag_form, at=self._q_contact, fields={"u_lag": field.trace()},
-                                                     values=self._contact_values(ind)))
+                             lambda: fem.interpolate(contact.lag_form, at=self._q_contact,
+                                                     fields={"u_lag": field.trace()}, values=self._contact_values(ind)))
 
     def _friction_lag_residual(self, ind) -> float:
         """|g| (N, on the free dofs) at self.u with friction's lagged pressure and tangent plane taken at u: the force
@@ -57,7 +57,8 @@ class ContactRecords:
         if ind.count and self.settings.friction_memory:
             self._graphs.run(("stick", self.u.dof_values.ptr, id(ind), float(ind.stiffness)), (self.u, ind),
                              lambda: fem.interpolate(contact.stick_form, at=self._q_contact,
-                                                     fields=self._contact_fields(self.u), values=self._contact_values(ind)))
+                                                     fields=self._contact_fields(self.u),
+                                                     values=self._contact_values(ind)))
 
     def _max_penetration(self, ind) -> float:
         """The largest penetration (mm) at the contact quadrature points; replayed as a CUDA graph per indenter struct
@@ -65,7 +66,8 @@ class ContactRecords:
         if not ind.count:
             return 0.0
         if self._penetration_work is None:
-            self._penetration_work = (wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device),
+            points = self._q_contact.total_point_count()
+            self._penetration_work = (wp.empty(points, dtype=wp.float64, device=self.device),
                                       reduction_buffer(3, self.device))
         pen, out = self._penetration_work
 
@@ -74,7 +76,8 @@ class ContactRecords:
                             values={"ind": ind})
             launch_extremes(pen, out)
 
-        self._graphs.run(("penetration", self.u.dof_values.ptr, id(ind), float(ind.stiffness)), (self.u, ind), launches)
+        self._graphs.run(("penetration", self.u.dof_values.ptr, id(ind), float(ind.stiffness)), (self.u, ind),
+                         launches)
         return read_extremes(out)[1]
 
     def _wrench(self, ind) -> np.ndarray:

@@ -14,12 +14,13 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
              p = z + (r . z)_new / (r . z) p
     until |r| <= tol (= max(rtol |b|, atol)) or ``maxiter`` iterations.
 
-M is block-Jacobi (sparse_product.py ``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a coarse correction on
-rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the device like
-``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the start (r, z,
-p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
+M is block-Jacobi (sparse_product.py ``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a
+coarse correction on rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the
+device like ``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the
+start (r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
 (``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the
-solve's tolerances and cap before it (``_set_limits``) and reads the state once, at the end; without conditional
+solve's tolerances and cap into pinned memory, which the graph copies in at its start, and reads the state once, at
+the end (one launch of the graph per solve, nothing else); without conditional
 graphs one pass of the loop is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is four
 launches, five with the coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z,
 |r|^2 and, with the coarse level, P^T r (``_step_precondition``: one thread group per aggregate, over its nodes), the
@@ -206,14 +207,6 @@ def _step_p(state: wp.array(dtype=wp.float64), set_: int, z: wp.array(dtype=wp.v
 
 
 @wp.kernel(enable_backward=False)
-def _set_limits(limits: wp.array(dtype=wp.float64), rtol2: wp.float64, atol2: wp.float64, maxiter: wp.float64):
-    """A solve's rtol^2, atol^2 and iteration cap, written outside its graph (the graph reads them from here)."""
-    limits[0] = rtol2
-    limits[1] = atol2
-    limits[2] = maxiter
-
-
-@wp.kernel(enable_backward=False)
 def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
     """After the set-up's sums (|r|^2 and r . z into the last set, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2,
     atol^2), the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the
@@ -250,7 +243,9 @@ class CgWorkspace:
     def __init__(self, n: int, device):
         self.b, self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(5))
         self.state = wp.zeros(STATE_SIZE, dtype=wp.float64, device=device)
-        self.limits = wp.zeros(3, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap (``_set_limits``)
+        self.limits = wp.zeros(3, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap
+        # the limits as the host writes them (pinned on a GPU, so that the solve's graph copies them in at each replay)
+        self.limits_host = wp.zeros(3, dtype=wp.float64, device="cpu", pinned=wp.get_device(device).is_cuda)
         self.x_max_work = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
@@ -311,8 +306,9 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         if coarse is not None:
             coarse.apply_inverse(state, SET_SIZE * set_ + RZ)
 
-    def start():  # r = b - A x, z = M r, p = z, their sums in the last set (not going on: no step), then the state of
-        state.zero_()  # the first iteration
+    def start():  # the limits in, r = b - A x, z = M r, p = z, their sums in the last set (not going on: no step), then
+        wp.copy(ws.limits, ws.limits_host)  # the state of the first iteration
+        state.zero_()
         A.matvec(x, ws.b, r, -1.0, 1.0)
         step_precondition(SETS - 1)
         launch_p_update(ws, SETS - 1, coarse, first=True)
@@ -333,7 +329,8 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
 
     if b.ptr != ws.b.ptr:  # the caller may have written b into the workspace itself
         wp.copy(ws.b, b)
-    wp.launch(_set_limits, dim=1, device=device, inputs=[ws.limits, rtol * rtol, atol * atol, float(maxiter)])
+    # written in place: no earlier solve still reads them (each ends in a read of its state)
+    ws.limits_host.numpy()[:] = (rtol * rtol, atol * atol, float(maxiter))
     if not device.is_cuda:
         start()
         wp.capture_while(condition, unrolled)  # on the CPU: a host loop on the condition

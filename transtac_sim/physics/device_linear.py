@@ -142,6 +142,11 @@ COARSE_REFRESH_STEPS = 10
 ESTIMATE_RTOL = 0.1
 ESTIMATE_CAP_FACTOR = 2.0
 
+#: the device path returns each solution in the next of this many kept arrays, taken in turn (no allocation per solve):
+#: a solution stays valid until this many more device solves have returned theirs. Newton holds at most three at once
+#: (newton.py: a step estimate, the Newton step and a step solved with a predicted contact, contact_prediction.py)
+SOLUTIONS = 4
+
 
 @dataclass
 class DeviceWork:
@@ -156,6 +161,8 @@ class DeviceWork:
     rounded: wp.array
     coarse: CoarseSpace | None
     graphs: GraphCache  # the solves' set-up (``_solve_cg``)
+    solutions: tuple[wp.array, ...]  # the solutions returned, in turn (``_known_solution``)
+    next_solution: int = 0
 
 
 class DeviceSolves:
@@ -206,7 +213,9 @@ class DeviceSolves:
                                     wp.empty(self._node_count, dtype=wp.vec3d, device=self.device),
                                     wp.empty(self._node_count, dtype=wp.mat33d, device=self.device),
                                     wp.empty(0, dtype=wp.mat33f, device=self.device), coarse,
-                                    GraphCache(self.device))
+                                    GraphCache(self.device),
+                                    tuple(wp.empty(self._node_count, dtype=wp.vec3d, device=self.device)
+                                          for _ in range(SOLUTIONS)))
         return self._work
 
     def coarse_stats(self) -> dict[str, int]:
@@ -233,9 +242,12 @@ class DeviceSolves:
         return result, total
 
     def _known_solution(self, x: wp.array, result: CgResult) -> wp.array:
-        """A copy of the CG's solution ``x``, kept for ``known_summary`` with the (x . b, max |x|, finite) that the CG
-        read with its state (``result``)."""
-        out = wp.clone(x)
+        """A copy of the CG's solution ``x`` in the next of the ``SOLUTIONS`` kept arrays, kept for ``known_summary``
+        with the (x . b, max |x|, finite) that the CG read with its state (``result``)."""
+        work = self._device_work()
+        out = work.solutions[work.next_solution]
+        work.next_solution = (work.next_solution + 1) % len(work.solutions)
+        wp.copy(out, x)
         self._known = (out, (result.x_dot_b, result.x_max,
                              bool(np.isfinite(result.x_max) and np.isfinite(result.x_dot_b))))
         return out
@@ -261,8 +273,9 @@ class DeviceSolves:
             invert_diagonal(H, work.inverse)
             work.x.zero_()
 
-        work.graphs.run(("prologue", *key, H.values.ptr, *(a.ptr for a in fixed_blocks_), work.rounded.ptr,
-                         single_precision), (H, fixed_blocks_, work.rounded), prologue)
+        work.graphs.run(("prologue", *key, H.values.ptr, len(H.values), *(a.ptr for a in fixed_blocks_),
+                         work.rounded.ptr, single_precision),
+                        (H.offsets, H.columns, H.row_counts, H.values, *fixed_blocks_, work.rounded), prologue)
         b = work.cg.b  # the CG's own right-hand side (definite_cg then copies nothing)
         wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
         A = block_row_operator(H, single_precision=True, rounded=work.rounded, round_now=False) if single_precision \

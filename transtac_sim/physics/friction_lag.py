@@ -44,8 +44,8 @@ ESTIMATE_REFINED_BELOW = 10.0
 
 
 class FrictionLag:
-    """When friction's lag moves inside Newton (``NewtonSteps``, which provides the fields, the settings, the linear
-    solver and ``_update_lag``)."""
+    """When friction's lag moves inside Newton (``NewtonSteps``, which provides the fields, the settings and the linear
+    solver; contact_records.py ``_update_lag``)."""
 
     def _lag_change(self) -> float:
         """max |u - u_lag| (mm): how far friction's lag is from the current u."""

@@ -81,8 +81,10 @@ Issue 12, ninth pass (scripts/fem_gpu_gaps.py; BENCHMARKS.md ``fem_host_operatio
 host about a fifth of each frame, spread over many host operations of 60-150 us each. The gradient's reductions and
 what is read with them are replayed as one graph into kept buffers (``_read_gradient``), a trial point is one launch
 (``_set_trial``), and a solve's set-up, friction's lag update, the largest penetration and the frame's wrench are
-graphs too (device_linear.py, contact_records.py): press_slide frames 1-9 0.91-0.94x the time in one lease, about
-0.103-0.107 s per frame.
+graphs too (device_linear.py, contact_records.py), and so are a solve's limits (definite_cg.py): press_slide frames
+1-9 0.91-0.94x the time with the gradient read, the trial point, a solve's set-up and the wrench changed (one lease,
+0.103-0.107 s per frame), 0.71-0.89x with the contact records too (a slower lease), then a median of about 0.96x with
+the rest (0.100-0.110 s per frame, a median of 0.105 s).
 """
 
 from __future__ import annotations
@@ -308,7 +310,8 @@ class NewtonSteps(FrictionLag):
         also = ((self._barrier_sum, 1),) + (((self._contact_sides.stale, 1),) if coverage else ()) \
             + (((self._energy_sum, 1),) if energy else ()) + (((self._lag_work, 2),) if lag_change else ())
 
-        def launches() -> None:  # into the kept rhs and output: one graph per combination of what is read (replay.py)
+        # one graph per combination of what is read (replay.py): every array it names is the solver's, made once
+        def launches() -> None:
             if lag_change:
                 self._launch_lag_change()
             launch_negated_free_and_load(g, self._fixed_mask, self._rhs, self._gradient_read, also)

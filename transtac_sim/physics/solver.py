@@ -154,7 +154,7 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
         self._penetration_work = None  # ``_max_penetration``'s values and extremes (made on first use)
         self._free_norm_work = None  # ``_free_norm``'s -g and sums (made on first use)
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
-        self._graphs = GraphCache(self.device)  # energy, det F, gradient and Hessian as CUDA graphs (replay.py)
+        self._graphs = GraphCache(self.device)  # the solver's launch sequences as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
         self._H_parts: dict = {}  # its parts that change with u, assembled in place (``_assemble``)
         self._tet_geometry = None  # the tets as the tet-by-tet terms see them (volumetric_hessian.py), on first use

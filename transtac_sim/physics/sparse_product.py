@@ -160,6 +160,8 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False, rounded: wp
         blocks = rounded if rounded is not None else wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
         if round_now:
             round_to_float32(A, blocks)
+        elif len(blocks) < len(A.values):
+            raise ValueError(f"float32 buffer of {len(blocks)} blocks for a matrix of {len(A.values)}")
 
     if A.device.is_cuda:
         kernel, groups, threads, rows = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,

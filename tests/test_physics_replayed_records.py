@@ -1,0 +1,76 @@
+"""The launch sequences replayed as CUDA graphs to save host operations (BENCHMARKS.md ``fem_host_operations_gpu``):
+Newton's gradient read and line-search trial, |g| at a frame's end, friction's lag update and residual, the largest
+penetration, the wrench, and the device solve's set-up. Each replay reads the current values and gives what the same
+methods give with a graph cache that only launches. On the CPU (no graphs) the cases check the launch path only; the
+replays are checked by the CUDA cases (the device tool, not CI)."""
+
+import numpy as np
+import pytest
+import warp as wp
+from test_physics_sparse_product import DEVICES, _next_step, _pressed_solver
+
+from transtac_sim.physics.linear import LinearSolver
+from transtac_sim.physics.replay import GraphCache
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy().copy()
+    replaying = solver._graphs
+
+    def evaluate(which):
+        lag = solver._friction_lag_residual(which)  # moves friction's lag to u and back: the gradient at u is kept
+        rhs, g_norm, load, change, energy = solver._read_gradient(which, True, True)
+        trial = solver._energy_and_min_det(solver._u_try, which)
+        return (rhs.numpy().copy(), g_norm, load, change, energy, trial, lag, solver._free_norm(solver._g),
+                solver._max_penetration(which), solver._wrench(which))
+
+    def launched(which):
+        solver._graphs = GraphCache("cpu")  # launches every time, on any device
+        try:
+            return evaluate(which)
+        finally:
+            solver._graphs = replaying
+
+    replaying.clear()
+    got, expected = [], []
+    for scale in (1.0, 0.9, 0.95, 0.85):  # the first call launches, the second captures, the rest replay
+        solver.u.dof_values.assign(scale * u0)
+        solver.u_lag.dof_values.assign(0.9 * scale * u0)  # a lag behind u
+        solver._u_try.dof_values.assign(1.02 * scale * u0)
+        solver._update_lag(ind)
+        got.append(evaluate(ind))
+        expected.append(launched(ind))
+    step = _next_step(solver)  # the next load step's poses, written into the same struct: replayed
+    got.append(evaluate(step))
+    expected.append(launched(step))
+    def scalars(values):  # E and det F are None where the CPU leaves them to their callers
+        return [v for v in (*values[1:5], *values[5], *values[6:9]) if v is not None]
+
+    for g, e in zip(got, expected, strict=True):
+        np.testing.assert_allclose(g[0], e[0], rtol=0, atol=1e-12 * np.abs(e[0]).max())
+        assert len(scalars(g)) == len(scalars(e)) == (9 if solver.device.is_cuda else 7)
+        np.testing.assert_allclose(scalars(g), scalars(e), rtol=1e-12)
+        np.testing.assert_allclose(g[9], e[9], rtol=1e-12, atol=1e-15)
+    assert len({g[1] for g in got}) == len(got)  # every state gave its own |g|
+    assert len({float(g[9][0, 2]) for g in got}) == len(got)  # and its own normal force
+    assert all(g[6] > 0.0 and g[8] > 0.0 for g in got)  # friction's lag left a residual; the sphere penetrates
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_replayed_solve_set_up_solves_each_new_system(device):
+    """The device solve's set-up (projection, float32 copy, diagonal inverses, x = 0; device_linear.py ``_solve_cg``)
+    replayed for the solver's one Hessian matrix sees its new values: each solve of a changed system equals the first
+    solve of that system by a fresh linear solver (whose set-up is launched)."""
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy().copy()
+    kept = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    for scale in (1.0, 0.9, 0.95, 0.85):  # launched, captured, then replayed
+        solver.u.dof_values.assign(scale * u0)
+        rhs = wp.array(-solver._gradient(ind).numpy(), dtype=wp.vec3d, device=solver.device)
+        x = kept.solve(solver._hessian(ind, 0.0, True), rhs, rtol=1e-10).numpy().copy()
+        fresh = LinearSolver("cg", solver._fixed_nodes, solver.device)
+        x_ref = fresh.solve(solver._hessian(ind, 0.0, True), rhs, rtol=1e-10).numpy()
+        np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-8 * np.abs(x_ref).max())
+        assert np.abs(x).max() > 0.0
