@@ -7,10 +7,9 @@ replays are checked by the CUDA cases (the device tool, not CI)."""
 import numpy as np
 import pytest
 import warp as wp
-from test_physics_sparse_product import DEVICES, _next_step, _pressed_solver
+from test_physics_sparse_product import DEVICES, _launched, _next_step, _pressed_solver
 
 from transtac_sim.physics.linear import LinearSolver
-from transtac_sim.physics.replay import GraphCache
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -26,13 +25,6 @@ def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
         return (rhs.numpy().copy(), g_norm, load, change, energy, trial, lag, solver._free_norm(solver._g),
                 solver._max_penetration(which), solver._wrench(which))
 
-    def launched(which):
-        solver._graphs = GraphCache("cpu")  # launches every time, on any device
-        try:
-            return evaluate(which)
-        finally:
-            solver._graphs = replaying
-
     replaying.clear()
     got, expected = [], []
     for scale in (1.0, 0.9, 0.95, 0.85):  # the first call launches, the second captures, the rest replay
@@ -41,10 +33,10 @@ def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
         solver._u_try.dof_values.assign(1.02 * scale * u0)
         solver._update_lag(ind)
         got.append(evaluate(ind))
-        expected.append(launched(ind))
+        expected.append(_launched(solver, evaluate, ind))
     step = _next_step(solver)  # the next load step's poses, written into the same struct: replayed
     got.append(evaluate(step))
-    expected.append(launched(step))
+    expected.append(_launched(solver, evaluate, step))
     def scalars(values):  # E and det F are None where the CPU leaves them to their callers
         return [v for v in (*values[1:5], *values[5], *values[6:9]) if v is not None]
 

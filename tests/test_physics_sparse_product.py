@@ -54,6 +54,16 @@ def _pressed_solver(degree: int = 2, device: str = "cpu", linear_solver: str = "
     return solver, ind
 
 
+def _launched(solver, evaluate, *args):
+    """``evaluate(*args)`` with a graph cache that launches every time, on any device (the reference for a replay)."""
+    replaying = solver._graphs
+    solver._graphs = GraphCache("cpu")
+    try:
+        return evaluate(*args)
+    finally:
+        solver._graphs = replaying
+
+
 def _next_step(solver):
     """The indenter struct of a load step that presses ``_pressed_solver``'s sphere 0.02 mm further (from its pose)."""
     P = solver.poses[0]
@@ -382,13 +392,6 @@ def test_replayed_gradient_and_hessian_read_the_current_values(device):
         H = [solver._hessian(which, 1.0, clamp).values.numpy()[:solver._H.nnz].copy() for clamp in (0, 1)]
         return g, acts, H
 
-    def launched(which):
-        solver._graphs = GraphCache("cpu")  # launches every time, on any device
-        try:
-            return evaluate(which)
-        finally:
-            solver._graphs = replaying
-
     replaying.clear()
     before = replaying.captures
     states = [(k, scale) for k in (1.0, 2.0) for scale in (1.0, 0.5, 0.9, 0.8)]  # launch, capture, then replays
@@ -398,19 +401,19 @@ def test_replayed_gradient_and_hessian_read_the_current_values(device):
         ind.stiffness = k * stiffness  # baked into the graphs: a new key
         solver.u.dof_values.assign(scale * u0)
         got.append(evaluate(ind))
-        expected.append(launched(ind))
+        expected.append(_launched(solver, evaluate, ind))
     solver.u_lag.dof_values.assign(0.5 * u0)  # friction's lag moved: the contact state changes in place
     solver._update_lag(ind)
     got.append(evaluate(ind))
-    expected.append(launched(ind))
+    expected.append(_launched(solver, evaluate, ind))
     ind.stiffness = stiffness
     got.append(evaluate(ind))  # the first stiffness's graphs again
-    expected.append(launched(ind))
+    expected.append(_launched(solver, evaluate, ind))
     captured = replaying.captures
     step = _next_step(solver)  # the next load step's poses, in the same struct
     for _ in range(2):
         got.append(evaluate(step))
-        expected.append(launched(step))
+        expected.append(_launched(solver, evaluate, step))
     for (g, acts, H), (g_ref, acts_ref, H_ref) in zip(got, expected, strict=True):
         np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-12 * np.abs(g_ref).max())
         assert acts == acts_ref
