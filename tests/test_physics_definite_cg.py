@@ -213,6 +213,8 @@ def test_a_set_up_made_by_the_caller_solves_as_the_operators_own(device):
     np.testing.assert_allclose(x.numpy(), own_x.numpy(), rtol=0.0, atol=tol * np.abs(own_x.numpy()).max())
     with pytest.raises(ValueError, match="round_now"):
         block_row_operator(H, single_precision=True, round_now=False)
+    with pytest.raises(ValueError, match="float32 buffer"):  # a buffer the caller filled must hold every block too
+        block_row_operator(H, single_precision=True, rounded=rounded[:-1], round_now=False)
     with pytest.raises(ValueError, match="invert_now"):
         BlockJacobi(H, invert_now=False)
     with pytest.raises(ValueError, match="float32 buffer"):

@@ -9,6 +9,7 @@ import pytest
 import warp as wp
 from test_physics_sparse_product import DEVICES, _launched, _next_step, _pressed_solver
 
+from transtac_sim.physics.device_linear import SOLUTIONS
 from transtac_sim.physics.linear import LinearSolver
 
 
@@ -26,8 +27,9 @@ def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
                 solver._max_penetration(which), solver._wrench(which))
 
     replaying.clear()
-    got, expected = [], []
+    got, expected, captured = [], [], []
     for scale in (1.0, 0.9, 0.95, 0.85):  # the first call launches, the second captures, the rest replay
+        captured.append(replaying.captures)
         solver.u.dof_values.assign(scale * u0)
         solver.u_lag.dof_values.assign(0.9 * scale * u0)  # a lag behind u
         solver._u_try.dof_values.assign(1.02 * scale * u0)
@@ -48,6 +50,14 @@ def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
     assert len({g[1] for g in got}) == len(got)  # every state gave its own |g|
     assert len({float(g[9][0, 2]) for g in got}) == len(got)  # and its own normal force
     assert all(g[6] > 0.0 and g[8] > 0.0 for g in got)  # friction's lag left a residual; the sphere penetrates
+    if solver.device.is_cuda:  # every graph captured by the second state; the later states and poses replay them
+        assert captured[2] > captured[1] and replaying.captures == captured[2], (captured, replaying.captures)
+
+
+def test_free_norm_refuses_a_vector_of_another_mesh():
+    solver, _ = _pressed_solver()
+    with pytest.raises(ValueError, match="a gradient of 5 nodes"):
+        solver._free_norm(wp.zeros(5, dtype=wp.vec3d))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -66,3 +76,25 @@ def test_replayed_solve_set_up_solves_each_new_system(device):
         x_ref = fresh.solve(solver._hessian(ind, 0.0, True), rhs, rtol=1e-10).numpy()
         np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-8 * np.abs(x_ref).max())
         assert np.abs(x).max() > 0.0
+
+
+def test_device_solutions_are_kept_arrays_taken_in_turn():
+    """device_linear.SOLUTIONS: each device solution is returned in the next of that many kept arrays; one stays as it
+    was until that many more solutions have been returned, and a solve that returns None takes none."""
+    solver, ind = _pressed_solver()
+    linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    rhs = wp.array(-solver._gradient(ind).numpy(), dtype=wp.vec3d)
+    first = linear.solve(solver._hessian(ind, 0.0, True), rhs, rtol=1e-8)
+    kept = first.numpy().copy()
+    later = []
+    for k in range(1, SOLUTIONS):
+        later.append(linear.solve(solver._hessian(ind, 0.0, True), wp.array((1.0 + k) * rhs.numpy(), dtype=wp.vec3d),
+                                  rtol=1e-8))
+        assert np.array_equal(first.numpy(), kept)  # not overwritten yet
+    assert len({id(x) for x in [first, *later]}) == SOLUTIONS
+    linear.cg_maxiter = 2  # a solve that does not converge returns None and takes no array
+    assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-12) is None
+    linear.cg_maxiter = 20000
+    assert np.array_equal(first.numpy(), kept)
+    again = linear.solve(solver._hessian(ind, 0.0, True), wp.array(0.5 * rhs.numpy(), dtype=wp.vec3d), rtol=1e-8)
+    assert again is first and not np.array_equal(first.numpy(), kept)

@@ -20,7 +20,7 @@ device like ``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.
 start (r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
 (``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the
 solve's tolerances and cap into pinned memory, which the graph copies in at its start, and reads the state once, at
-the end (one launch of the graph per solve, nothing else); without conditional
+the end (one launch of the graph per solve, and a copy of b where it is not the workspace's own); without conditional
 graphs one pass of the loop is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is four
 launches, five with the coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z,
 |r|^2 and, with the coarse level, P^T r (``_step_precondition``: one thread group per aggregate, over its nodes), the
@@ -307,7 +307,8 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             coarse.apply_inverse(state, SET_SIZE * set_ + RZ)
 
     def start():  # the limits in, r = b - A x, z = M r, p = z, their sums in the last set (not going on: no step), then
-        wp.copy(ws.limits, ws.limits_host)  # the state of the first iteration
+        # the state of the first iteration
+        wp.copy(ws.limits, ws.limits_host)  # the host's tolerances and cap (pinned on a GPU: read at each replay)
         state.zero_()
         A.matvec(x, ws.b, r, -1.0, 1.0)
         step_precondition(SETS - 1)

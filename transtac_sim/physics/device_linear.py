@@ -143,7 +143,8 @@ ESTIMATE_RTOL = 0.1
 ESTIMATE_CAP_FACTOR = 2.0
 
 #: the device path returns each solution in the next of this many kept arrays, taken in turn (no allocation per solve):
-#: a solution stays valid until this many more device solves have returned theirs. Newton holds at most three at once
+#: a solution stays valid until this many more device solves have returned theirs (a solve that returns None takes
+#: none). Newton holds at most three at once
 #: (newton.py: a step estimate, the Newton step and a step solved with a predicted contact, contact_prediction.py)
 SOLUTIONS = 4
 
@@ -153,7 +154,7 @@ class DeviceWork:
     """What the device path keeps between solves, so that each solve finds the arrays of the last and its CG can launch
     the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses, the matrix's float32
     blocks (grown to the largest matrix), the coarse level of the two-level preconditioner (None: block-Jacobi
-    alone) and the graphs of the solves' set-up."""
+    alone), the graphs of the solves' set-up and the ``SOLUTIONS`` arrays the solutions are returned in."""
 
     cg: CgWorkspace
     x: wp.array

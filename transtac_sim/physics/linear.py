@@ -91,8 +91,8 @@ class LinearSolver(DeviceSolves):
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
               rtol: float | None = None, exact_below: float = 0.0, guess: wp.array | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device; on the CG path one of device_linear.SOLUTIONS kept arrays,
-        overwritten that many solves later). ``H`` is changed: its fixed rows and columns are projected out
-        in place (the caller assembles it anew for each system, assembly.py). With
+        overwritten by the SOLUTIONS-th solution returned after it). ``H`` is changed: its fixed rows and columns are
+        projected out in place (the caller assembles it anew for each system, assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
@@ -202,8 +202,8 @@ class LinearSolver(DeviceSolves):
         tighter tolerance only where the loose solution's max |x| is within [``refine_above``, ``exact_below``) mm:
         an early-stopped CG solution is mostly shorter than the exact one, and the caller compares its length with a
         threshold (friction_lag.py ``_estimate_band``). An array on the device with 0 on the fixed components (on the
-        CG path one of device_linear.SOLUTIONS kept arrays, overwritten that many solves later), or
-        None (no system yet, or no convergence within the iterations allowed)."""
+        CG path one of device_linear.SOLUTIONS kept arrays, overwritten by the SOLUTIONS-th solution returned after
+        it), or None (no system yet, or no convergence within the iterations allowed)."""
         if self.method == "cg":
             return self._solve_last_cg(rhs, exact_below, refine_above)
         if self._last_free is None or self._lu is None or self._lu.shape != self._last_free.shape:

@@ -80,8 +80,10 @@ H100 (about 0.13-0.16 s), the Newton iterations within the runs' spread.
 Issue 12, ninth pass (scripts/fem_gpu_gaps.py; BENCHMARKS.md ``fem_host_operations_gpu``): the GPU still waited for the
 host about a fifth of each frame, spread over many host operations of 60-150 us each. The gradient's reductions and
 what is read with them are replayed as one graph into kept buffers (``_read_gradient``), a trial point is one launch
-(``_set_trial``), and a solve's set-up, friction's lag update, the largest penetration and the frame's wrench are
-graphs too (device_linear.py, contact_records.py), and so are a solve's limits (definite_cg.py): press_slide frames
+(``_set_trial``), a solve's set-up, friction's lag update, the largest penetration and the frame's wrench are graphs
+too (device_linear.py, contact_records.py), the gradient is one graph and the line-search trial another (assembly.py),
+a solve's limits are copied in by the CG's graph from pinned memory (definite_cg.py), and solutions go into kept arrays
+(device_linear.py ``SOLUTIONS``): press_slide frames
 1-9 0.91-0.94x the time with the gradient read, the trial point, a solve's set-up and the wrench changed (one lease,
 0.103-0.107 s per frame), 0.71-0.89x with the contact records too (a slower lease), then a median of about 0.96x with
 the rest (0.100-0.110 s per frame, a median of 0.105 s).
