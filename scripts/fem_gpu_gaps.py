@@ -28,6 +28,7 @@ import dataclasses
 import json
 import tempfile
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
@@ -133,7 +134,7 @@ def _mark(name: str, original, record_function):
 READ = "read (array.numpy)"
 
 
-def install_marks(record_function, warp_calls: bool = False) -> callable:
+def install_marks(record_function, warp_calls: bool = False) -> Callable[[], None]:
     """Marks the solver's methods (``MARKED``), device reads and, with ``warp_calls``, Warp's launch, capture_launch and
     copy; returns a function that puts the originals back."""
     originals = []  # (owner, name, the original or None where the owner only inherited it)

@@ -39,7 +39,6 @@ from transtac_sim.physics.definite_cg import add_dot
 from transtac_sim.physics.reductions import (
     launch_extremes,
     launch_negated_free_and_load,
-    negated_free_buffer,
     read_extremes,
     read_negated_free,
 )
@@ -359,8 +358,6 @@ class Assembly:
     def _free_norm(self, g: wp.array) -> float:
         """|g| over the free components (N) of ``g`` (a gradient: vec3d per node), into kept buffers, replayed as a
         CUDA graph per g on a GPU (replay.py)."""
-        if self._free_norm_work is None:
-            self._free_norm_work = (wp.empty_like(self._g), negated_free_buffer(0, self.device))
         rhs, out = self._free_norm_work
         if g.shape != rhs.shape:
             raise ValueError(f"a gradient of {g.shape[0]} nodes for a mesh of {rhs.shape[0]}")
@@ -371,11 +368,8 @@ class Assembly:
     def _min_det(self, u) -> float:
         """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN); replayed as a CUDA
         graph per displacement field on a GPU (replay.py)."""
-        self._launch_min_det(u)
-        return read_extremes(self._det_work[1])[0]
-
-    def _launch_min_det(self, u) -> None:
         self._graphs.run(("min_det", u.dof_values.ptr), (u,), lambda: self._min_det_terms(u))
+        return read_extremes(self._det_work[1])[0]
 
     def _min_det_terms(self, u) -> None:
         """det F at the barrier's check points and their extremes into ``self._det_work`` (launches only)."""

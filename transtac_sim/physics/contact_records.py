@@ -15,7 +15,7 @@ import warp as wp
 import warp.fem as fem
 
 from transtac_sim.physics import contact
-from transtac_sim.physics.reductions import launch_extremes, read_extremes, reduction_buffer
+from transtac_sim.physics.reductions import launch_extremes, read_extremes
 
 
 class ContactRecords:
@@ -39,8 +39,6 @@ class ContactRecords:
         if not ind.count or not any(i.friction > 0 for i in self.indenters):
             return 0.0
         st = self._contact_state
-        if self._lag_kept is None:
-            self._lag_kept = (wp.empty_like(st.lag_g), wp.empty_like(st.lag_n))
         kept = self._lag_kept
         wp.copy(kept[0], st.lag_g)
         wp.copy(kept[1], st.lag_n)
@@ -65,10 +63,6 @@ class ContactRecords:
         and contact stiffness on a GPU (replay.py)."""
         if not ind.count:
             return 0.0
-        if self._penetration_work is None:
-            points = self._q_contact.total_point_count()
-            self._penetration_work = (wp.empty(points, dtype=wp.float64, device=self.device),
-                                      reduction_buffer(3, self.device))
         pen, out = self._penetration_work
 
         def launches() -> None:

@@ -83,10 +83,9 @@ what is read with them are replayed as one graph into kept buffers (``_read_grad
 (``_set_trial``), a solve's set-up, friction's lag update, the largest penetration and the frame's wrench are graphs
 too (device_linear.py, contact_records.py), the gradient is one graph and the line-search trial another (assembly.py),
 a solve's limits are copied in by the CG's graph from pinned memory (definite_cg.py), and solutions go into kept arrays
-(device_linear.py ``SOLUTIONS``): press_slide frames
-1-9 0.91-0.94x the time with the gradient read, the trial point, a solve's set-up and the wrench changed (one lease,
-0.103-0.107 s per frame), 0.71-0.89x with the contact records too (a slower lease), then a median of about 0.96x with
-the rest (0.100-0.110 s per frame, a median of 0.105 s).
+(device_linear.py ``SOLUTIONS``): press_slide frames 1-9 0.91-0.94x the time with the gradient read, the trial point,
+a solve's set-up and the wrench changed (one lease, 0.103-0.107 s per frame), 0.71-0.89x with the contact records too
+(a slower lease), then a median of about 0.96x with the rest (0.100-0.110 s per frame, a median of 0.105 s).
 """
 
 from __future__ import annotations

@@ -150,9 +150,11 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
         self._rhs = wp.empty_like(self.u.dof_values)  # -g on the free dofs (newton.py ``_read_gradient``)
         self._gradient_read = negated_free_buffer(5, self.device)  # |g|, the load and what is read with them
         self._wrench_work = wp.zeros(6 * len(self.indenters), dtype=wp.float64, device=self.device)  # ``_wrench``
-        self._lag_kept = None  # friction's lag kept while ``_friction_lag_residual`` moves it (made on first use)
-        self._penetration_work = None  # ``_max_penetration``'s values and extremes (made on first use)
-        self._free_norm_work = None  # ``_free_norm``'s -g and sums (made on first use)
+        st = self._contact_state  # friction's lag kept while ``_friction_lag_residual`` moves it
+        self._lag_kept = (wp.empty_like(st.lag_g), wp.empty_like(st.lag_n))
+        self._penetration_work = (wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device),
+                                  reduction_buffer(3, self.device))  # ``_max_penetration``'s values and extremes
+        self._free_norm_work = (wp.empty_like(self._g), negated_free_buffer(0, self.device))  # ``_free_norm``'s
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
         self._graphs = GraphCache(self.device)  # the solver's launch sequences as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)

@@ -136,10 +136,14 @@ def _round_to_float32(entries: wp.array(dtype=wp.float64), rounded: wp.array(dty
     rounded[i] = wp.float32(entries[i])
 
 
-def round_to_float32(A: BsrMatrix, rounded: wp.array) -> None:
-    """A's blocks rounded to float32 into ``rounded`` (mat33f, at least as many blocks as A.values; launch only)."""
+def _check_float32_buffer(A: BsrMatrix, rounded: wp.array) -> None:
     if len(rounded) < len(A.values):
         raise ValueError(f"float32 buffer of {len(rounded)} blocks for a matrix of {len(A.values)}")
+
+
+def round_to_float32(A: BsrMatrix, rounded: wp.array) -> None:
+    """A's blocks rounded to float32 into ``rounded`` (mat33f, at least as many blocks as A.values; launch only)."""
+    _check_float32_buffer(A, rounded)
     wp.launch(_round_to_float32, dim=9 * len(A.values), device=A.device,
               inputs=[A.values.view(wp.float64).flatten(), rounded.view(wp.float32).flatten()])
 
@@ -158,10 +162,9 @@ def block_row_operator(A: BsrMatrix, single_precision: bool = False, rounded: wp
         if rounded is None and not round_now:
             raise ValueError("round_now=False needs the rounded blocks")
         blocks = rounded if rounded is not None else wp.empty(len(A.values), dtype=wp.mat33f, device=A.device)
+        _check_float32_buffer(A, blocks)
         if round_now:
             round_to_float32(A, blocks)
-        elif len(blocks) < len(A.values):
-            raise ValueError(f"float32 buffer of {len(blocks)} blocks for a matrix of {len(A.values)}")
 
     if A.device.is_cuda:
         kernel, groups, threads, rows = (_block_rows_product, (A.nrow + ROWS_PER_GROUP - 1) // ROWS_PER_GROUP,
