@@ -41,14 +41,15 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
-#: the solver's methods marked as host ranges (newton.py, assembly.py, contact_records.py, solver.py, friction_lag.py,
-#: warm_start.py, contact_prediction.py; linear.py, device_linear.py)
+#: the solver's methods marked as host ranges (newton.py, trial_point.py, assembly.py, contact_records.py, solver.py,
+#: friction_lag.py, warm_start.py, contact_prediction.py; linear.py, device_linear.py)
 MARKED = {
     QuasiStaticSolver: ("solve_frame", "_solve_step", "_newton", "_read_gradient", "_gradient", "_set_trial",
-                        "_launch_energy", "_energy", "_energy_and_min_det", "_hessian", "_contact_subset", "_min_det",
-                        "_free_norm", "_max_penetration", "_raise_stiffness", "_move_lag", "_update_lag",
-                        "_launch_lag_change", "_friction_lag_residual", "_keep_stick", "_wrench", "_warm_start",
-                        "_predict_contact", "_indenter_struct"),
+                        "_launch_energy", "_energy", "_try_step", "_energy_and_min_det", "_hessian", "_contact_subset",
+                        "_min_det", "_launch_min_det", "_read_min_det", "_free_norm", "_read_free_norm",
+                        "_max_penetration", "_raise_stiffness", "_move_lag", "_update_lag", "_launch_lag_change",
+                        "_launch_friction_lag_residual", "_keep_stick", "_launch_wrench", "_read_wrench",
+                        "_warm_start", "_predict_contact", "_indenter_struct"),
     LinearSolver: ("solve", "solve_last", "_solve_cg", "_cg", "_known_solution", "known_summary"),
 }
 FRAME = "QuasiStaticSolver.solve_frame"  # the counted windows

@@ -219,3 +219,40 @@ def test_a_set_up_made_by_the_caller_solves_as_the_operators_own(device):
         BlockJacobi(H, invert_now=False)
     with pytest.raises(ValueError, match="float32 buffer"):
         round_to_float32(H, wp.empty(len(H.values) - 1, dtype=wp.mat33f, device=device))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_solve_that_takes_b_and_starts_from_zero_solves_the_projected_system(device):
+    """``fixed`` and ``from_zero`` (device_linear.py's solves): the solve's first launch takes (I - P) b from the
+    caller's kept b and sets x = 0, inside its graph on CUDA; whatever x held, it gives the iterates of a solve of the
+    projected b from 0, sees b's new values on each replay, and refines from where it stopped without ``from_zero``; on
+    CUDA one graph serves both starts (whether x = 0 first is copied in with the limits)."""
+    A = _laplacian_3d(0.0)
+    H = _warp_bsr(A, device)
+    rng = np.random.default_rng(7)
+    mask = np.zeros((N, 3))
+    mask[0] = 1.0
+    mask[5, 2] = 1.0
+    fixed = wp.array(mask, dtype=wp.vec3d, device=device)
+    workspace, b, x = CgWorkspace(N, device), wp.empty(N, dtype=wp.vec3d, device=device), wp.empty(N, dtype=wp.vec3d,
+                                                                                                     device=device)
+    tol = 0.0 if device == "cpu" else 1e-9  # on CUDA the dot products' atomics change the last bits
+    A_op, M = block_row_operator(H), BlockJacobi(H)  # the same arrays in each solve: its graphs are kept
+    for _ in range(3):  # launched, captured, replayed
+        values = rng.standard_normal((N, 3))
+        b.assign(values)
+        x.fill_(1.0e3)  # not where the solve starts
+        taken = definite_cg(A_op, b, x, 1e-2, 3 * N, M, workspace=workspace, fixed=fixed, from_zero=True)
+        reference_x = wp.zeros(N, dtype=wp.vec3d, device=device)
+        reference = definite_cg(block_row_operator(H), wp.array(values * (1.0 - mask), dtype=wp.vec3d, device=device),
+                                reference_x, 1e-2, 3 * N, BlockJacobi(H))
+        assert taken.converged and abs(taken.iterations - reference.iterations) <= (device != "cpu"), (taken, reference)
+        np.testing.assert_allclose(x.numpy(), reference_x.numpy(), rtol=0.0,
+                                   atol=tol * np.abs(reference_x.numpy()).max())
+        refined = definite_cg(A_op, b, x, 1e-10, 3 * N, M, workspace=workspace, fixed=fixed)
+        assert refined.converged and refined.iterations > 0
+        exact = spla.spsolve(A.tocsc(), (values * (1.0 - mask)).reshape(-1))
+        np.testing.assert_allclose(x.numpy().reshape(-1), exact, rtol=1e-7, atol=1e-9 * np.abs(exact).max())
+    assert workspace.captures == (1 if device != "cpu" else 0)
+    with pytest.raises(ValueError, match="a fixed mask of 3 nodes"):
+        definite_cg(A_op, b, x, 1e-2, 3 * N, M, workspace=workspace, fixed=fixed[:3])

@@ -20,11 +20,15 @@ def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
     replaying = solver._graphs
 
     def evaluate(which):
-        lag = solver._friction_lag_residual(which)  # moves friction's lag to u and back: the gradient at u is kept
+        # launched as solve_frame launches them, then read: friction's lag moved to u and back (the gradient at u is
+        # kept), and the wrench
+        lagged = solver._launch_friction_lag_residual(which)
+        solver._launch_wrench(which)
+        lag, wrench = solver._read_free_norm() if lagged else 0.0, solver._read_wrench()
         rhs, g_norm, load, change, energy = solver._read_gradient(which, True, True)
         trial = solver._energy_and_min_det(solver._u_try, which)
         return (rhs.numpy().copy(), g_norm, load, change, energy, trial, lag, solver._free_norm(solver._g),
-                solver._max_penetration(which), solver._wrench(which))
+                solver._max_penetration(which), wrench)
 
     replaying.clear()
     got, expected, captured = [], [], []
@@ -51,6 +55,71 @@ def test_replayed_reads_and_contact_records_equal_the_launched_ones(device):
     assert len({float(g[9][0, 2]) for g in got}) == len(got)  # and its own normal force
     assert all(g[6] > 0.0 and g[8] > 0.0 for g in got)  # friction's lag left a residual; the sphere penetrates
     if solver.device.is_cuda:  # every graph captured by the second state; the later states and poses replay them
+        assert captured[2] > captured[1] and replaying.captures == captured[2], (captured, replaying.captures)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_gradient_that_takes_the_trial_starts_from_it(device):
+    """newton.py's accepted line-search trial is copied into u by the next gradient (``take_trial``; inside its graph
+    on a GPU): u becomes u_try, and the gradient, |g| and the load are those at u_try, for each state replayed."""
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy().copy()
+    replaying = solver._graphs
+    replaying.clear()  # the graphs of the solve that made the state
+
+    def evaluate(which):
+        rhs, g_norm, load, _, _ = solver._read_gradient(which, False, False, take_trial=True)
+        return rhs.numpy().copy(), g_norm, load, solver.u.dof_values.numpy().copy()
+
+    captured = []
+    for scale in (1.0, 0.9, 0.95, 0.85):  # launched, captured, then replayed
+        captured.append(replaying.captures)
+        trial = 1.02 * scale * u0
+        solver.u.dof_values.assign(0.5 * u0)  # not where the gradient is taken
+        solver._u_try.dof_values.assign(trial)
+        got = evaluate(ind)
+        solver.u.dof_values.assign(0.5 * u0)
+        expected = _launched(solver, evaluate, ind)
+        np.testing.assert_array_equal(got[3], trial)
+        np.testing.assert_array_equal(expected[3], trial)
+        np.testing.assert_allclose(got[0], expected[0], rtol=0, atol=1e-12 * np.abs(expected[0]).max())
+        np.testing.assert_allclose(got[1:3], expected[1:3], rtol=1e-12)
+        solver.u.dof_values.assign(trial)  # the gradient at u_try taken as it is
+        _, g_norm, load, _, _ = solver._read_gradient(ind, False, False)
+        np.testing.assert_allclose((g_norm, load), got[1:3], rtol=1e-12)
+    if solver.device.is_cuda:
+        assert captured[2] > captured[1] and replaying.captures == captured[2], (captured, replaying.captures)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_trial_graph_reads_the_step_and_alpha_it_is_given(device):
+    """trial_point.py ``_try_step``: on a GPU, where du is one of the linear solver's kept solutions, the trial point
+    is launched in the energy's graph, which reads du's row and alpha at each replay: u_try, E and det F equal those of
+    the trial point launched on its own (``_set_trial``) for each (row, alpha), with one graph for all of them. On the
+    CPU the trial point is always launched on its own; its case checks that path."""
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy().copy()
+    linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
+    solver._linear = linear
+    rhs = wp.array(-solver._gradient(ind).numpy(), dtype=wp.vec3d, device=solver.device)
+    steps = [linear.solve(solver._hessian(ind, 0.0, True), wp.array(k * rhs.numpy(), dtype=wp.vec3d,
+                                                                     device=solver.device), rtol=1e-8)
+             for k in (1.0, -0.5, 0.25)]
+    replaying = solver._graphs
+    replaying.clear()
+    captured = []
+    for du, alpha in [(steps[0], 1.0), (steps[1], 0.5), (steps[2], 0.25), (steps[0], 0.125), (steps[1], 1.0)]:
+        captured.append(replaying.captures)
+        got = solver._try_step(du, alpha, ind), solver._u_try.dof_values.numpy().copy()
+        solver._u_try.dof_values.zero_()
+        solver._set_trial(du, alpha)
+        expected = solver._energy_and_min_det(solver._u_try, ind), solver._u_try.dof_values.numpy().copy()
+        np.testing.assert_allclose(got[1], expected[1], rtol=0, atol=1e-15 * np.abs(u0).max())
+        np.testing.assert_allclose(got[1], u0 + alpha * du.numpy(), rtol=0, atol=1e-15 * np.abs(u0).max())
+        assert (got[0][1] is None) == (expected[0][1] is None) == (not solver.device.is_cuda)
+        np.testing.assert_allclose([v for v in got[0] if v is not None], [v for v in expected[0] if v is not None],
+                                   rtol=1e-12)
+    if solver.device.is_cuda:  # the kept-step graph captured at its second use, then replayed for every row and alpha
         assert captured[2] > captured[1] and replaying.captures == captured[2], (captured, replaying.captures)
 
 
@@ -91,10 +160,13 @@ def test_device_solutions_are_kept_arrays_taken_in_turn():
         later.append(linear.solve(solver._hessian(ind, 0.0, True), wp.array((1.0 + k) * rhs.numpy(), dtype=wp.vec3d),
                                   rtol=1e-8))
         assert np.array_equal(first.numpy(), kept)  # not overwritten yet
-    assert len({id(x) for x in [first, *later]}) == SOLUTIONS
+    assert len({x.ptr for x in [first, *later]}) == SOLUTIONS
+    rows = [linear.solution_row(x) for x in [first, *later]]  # where a graph finds each of them
+    assert [row for _, row in rows] == list(range(SOLUTIONS)) and all(a is rows[0][0] for a, _ in rows)
+    assert linear.solution_row(rhs) is None and linear.solution_row(wp.clone(first)) is None
     linear.cg_maxiter = 2  # a solve that does not converge returns None and takes no array
     assert linear.solve(solver._hessian(ind, 0.0, True), rhs, definite=True, rtol=1e-12) is None
     linear.cg_maxiter = 20000
     assert np.array_equal(first.numpy(), kept)
     again = linear.solve(solver._hessian(ind, 0.0, True), wp.array(0.5 * rhs.numpy(), dtype=wp.vec3d), rtol=1e-8)
-    assert again is first and not np.array_equal(first.numpy(), kept)
+    assert again.ptr == first.ptr and not np.array_equal(first.numpy(), kept)

@@ -26,6 +26,7 @@ E(u) = E_el(u) + E_barrier(u) + E_contact(u) (elasticity.py, contact.py), u the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -125,21 +126,26 @@ class Assembly:
         key = ("energy", u.dof_values.ptr, id(ind), float(ind.stiffness))
         self._graphs.run(key, (u, ind), lambda: self._energy_terms(u, ind))
 
-    def _energy_and_min_det(self, u, ind) -> tuple[float, float | None]:
+    def _energy_and_min_det(self, u, ind, prepare: tuple[tuple, Callable[[], None]] | None = None
+                            ) -> tuple[float, float | None]:
         """(E(u), the smallest det F at u) for the line search's trial u: on a GPU both are launched and read together
         (E copied next to the det F's extremes, one read), so that the host waits once (most trials are taken, and the
         det F then decides); on the CPU, where a read costs no wait, the det F is None (``_min_det`` where it is
-        needed)."""
+        needed). ``prepare``: (what it adds to the graph's key, launches) that make u, run first in the same graph
+        (newton.py: the trial point; GPU only)."""
         if not self.device.is_cuda:
             return self._energy(u, ind), None
         out = self._det_work[1]
 
         def launches() -> None:  # one graph per field, indenter struct and contact stiffness (replay.py)
+            if prepare is not None:
+                prepare[1]()
             self._energy_terms(u, ind)
             self._min_det_terms(u)
             wp.copy(out, self._energy_sum, dest_offset=3, count=1)  # over a partial that the combine has used
 
-        self._graphs.run(("trial", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind), launches)
+        key = ("trial", u.dof_values.ptr, id(ind), float(ind.stiffness), *(prepare[0] if prepare is not None else ()))
+        self._graphs.run(key, (u, ind), launches)
         (low, _), energy = read_extremes(out, also=1)
         return energy[0], low
 
@@ -160,8 +166,10 @@ class Assembly:
             fem.integrate(contact.contact_energy_form, quadrature=self._q_contact, fields=self._contact_fields(u),
                           values=self._contact_values(ind), output=total, add=True)
 
-    def _gradient(self, ind) -> wp.array:
+    def _gradient(self, ind, take_trial: bool = False) -> wp.array:
         """Gradient at self.u (N, vec3d per node), written into the kept ``self._g`` (the next call overwrites it);
+        with ``take_trial``, self.u = the line search's trial ``self._u_try`` first (newton.py: the accepted step,
+        copied in the gradient's graph instead of a launch of its own);
         also stores there the contact state and the barrier's energy, which ``_hessian`` uses (``_barrier_acts``). The
         terms are added in the order of the energy (elastic, barrier, contact). On a GPU the launches are replayed as
         one CUDA graph per displacement field, indenter struct and contact stiffness (replay.py): the elastic terms
@@ -172,10 +180,17 @@ class Assembly:
         case)."""
         u = self.u
         if self.device.is_cuda:
-            self._graphs.run(("gradient", u.dof_values.ptr, id(ind), float(ind.stiffness)), (u, ind),
-                             lambda: self._gradient_terms(ind, barrier=self.settings.barrier_det_f > 0.0))
+            def launches() -> None:
+                if take_trial:
+                    wp.copy(u.dof_values, self._u_try.dof_values)
+                self._gradient_terms(ind, barrier=self.settings.barrier_det_f > 0.0)
+
+            self._graphs.run(("gradient", u.dof_values.ptr, id(ind), float(ind.stiffness), take_trial), (u, ind),
+                             launches)
             self._barrier_energy = None
         else:
+            if take_trial:
+                wp.copy(u.dof_values, self._u_try.dof_values)
             self._elastic_gradient_terms()
             self._barrier_energy = None
             self._gradient_terms(ind, barrier=self._barrier_acts, elastic=False)
@@ -355,21 +370,37 @@ class Assembly:
             slots = self._H_slots[name] = wp.array(index.astype(np.int32), dtype=int, device=self.device)
         return slots
 
-    def _free_norm(self, g: wp.array) -> float:
-        """|g| over the free components (N) of ``g`` (a gradient: vec3d per node), into kept buffers, replayed as a
-        CUDA graph per g on a GPU (replay.py)."""
+    def _launch_free_norm(self, g: wp.array) -> None:
+        """|g| over the free components (N) of ``g`` (a gradient: vec3d per node) into kept buffers, for
+        ``_read_free_norm``; replayed as a CUDA graph per g on a GPU (replay.py)."""
         rhs, out = self._free_norm_work
         if g.shape != rhs.shape:
             raise ValueError(f"a gradient of {g.shape[0]} nodes for a mesh of {rhs.shape[0]}")
         self._graphs.run(("free_norm", g.ptr), (g,),
                          lambda: launch_negated_free_and_load(g, self._fixed_mask, rhs, out))
-        return read_negated_free(rhs, out, 2)[1]
+
+    def _read_free_norm(self) -> float:
+        """The last ``_launch_free_norm``'s |g| (N), in one read."""
+        return read_negated_free(*self._free_norm_work, 2)[1]
+
+    def _free_norm(self, g: wp.array) -> float:
+        """``_launch_free_norm`` and its read."""
+        self._launch_free_norm(g)
+        return self._read_free_norm()
+
+    def _launch_min_det(self, u) -> None:
+        """The smallest det F at the barrier's check points (4 per tet) into kept buffers, for ``_read_min_det``;
+        replayed as a CUDA graph per displacement field on a GPU (replay.py)."""
+        self._graphs.run(("min_det", u.dof_values.ptr), (u,), lambda: self._min_det_terms(u))
+
+    def _read_min_det(self) -> float:
+        """The last ``_launch_min_det``'s smallest det F (NaN where any is NaN), in one read."""
+        return read_extremes(self._det_work[1])[0]
 
     def _min_det(self, u) -> float:
-        """The smallest det F at the barrier's check points (4 per tet; NaN where any is NaN); replayed as a CUDA
-        graph per displacement field on a GPU (replay.py)."""
-        self._graphs.run(("min_det", u.dof_values.ptr), (u,), lambda: self._min_det_terms(u))
-        return read_extremes(self._det_work[1])[0]
+        """``_launch_min_det`` and its read."""
+        self._launch_min_det(u)
+        return self._read_min_det()
 
     def _min_det_terms(self, u) -> None:
         """det F at the barrier's check points and their extremes into ``self._det_work`` (launches only)."""

@@ -19,8 +19,9 @@ coarse correction on rigid-body modes of aggregates of nodes (``coarse``: coarse
 device like ``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the
 start (r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
 (``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the
-solve's tolerances and cap into pinned memory, which the graph copies in at its start, and reads the state once, at
-the end (one launch of the graph per solve, and a copy of b where it is not the workspace's own); without conditional
+solve's tolerances, cap and start into pinned memory, which the graph copies in at its start, and reads the state
+once, at the end (one launch of the graph per solve, and a copy of b where it is not the workspace's own, unless the
+caller has the graph take b and set x = 0 itself: ``fixed``, device_linear.py's solves); without conditional
 graphs one pass of the loop is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is four
 launches, five with the coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z,
 |r|^2 and, with the coarse level, P^T r (``_step_precondition``: one thread group per aggregate, over its nodes), the
@@ -42,10 +43,12 @@ solve from 0, while a short solve (a step estimate) pays for up to 5 iterations 
 (``fem_cg_fused_gpu``). Dot products are block-wise tile sums added atomically (round-off varies from run to run in
 the last bits, as the assembly's atomics already do).
 
-A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last captured graph between solves
-of one size (a solver's Newton systems): a solve whose arrays are those of an earlier one (the operator's ``graph_key``,
-the preconditioner and x) launches that solve's graph instead of capturing and instantiating its own (press_slide on an
-H100: one graph for all its frames, 0.87x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``). The state
+A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last ``KEPT_GRAPHS`` captured
+graphs between solves of one size (a solver's Newton systems): a solve whose arrays are those of an earlier one (the
+operator's ``graph_key``, the preconditioner, x and, with ``fixed``, b) launches that solve's graph instead of capturing
+and instantiating its own (press_slide on an H100: one graph for all its frames, 0.87x the CG's time per solve;
+BENCHMARKS.md ``fem_cg_kept_graphs_gpu``; a second one since b is taken inside it, for the predicted contact's solves
+of a release frame, contact_prediction.py). The state
 is cleared at the start of every solve. Before the start moved into the graph, a solve read the state twice, and the
 GPU waited between the two reads while the host wrote the state of the first iteration and launched the loop
 (scripts/fem_host_census.py; BENCHMARKS.md ``fem_host_census_gpu``).
@@ -66,13 +69,16 @@ from transtac_sim.physics.coarse_space import (
     restrict_node,
     vec6d,
 )
-from transtac_sim.physics.reductions import launch_max_abs, reduction_buffer
+from transtac_sim.physics.reductions import free_part, launch_max_abs, reduction_buffer
 from transtac_sim.physics.sparse_product import BlockJacobi
 
 CHECK_EVERY = 3  # host path without conditional graphs: passes of the loop (UNROLL iterations each) between reads
 UNROLL = 3  # iterations per pass of the loop (a multiple of SETS)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
+#: CUDA graphs a workspace keeps, one per solve's arrays (the oldest dropped first): device_linear.py's solves take b
+#: from Newton's right-hand side or a predicted contact's (contact_prediction.py), with the float32 or float64 product
+KEPT_GRAPHS = 4
 
 # the state array: SETS sets of an iteration's slots (iteration k uses set k mod SETS: whether it goes on, and its sums
 # p . q, r . z and |r|^2), then the solve's (X_MAX, X_NANS: max |x| over entries and components at the end, and the
@@ -81,6 +87,9 @@ SETS = wp.constant(3)
 ACTIVE, PQ, RZ, RR = (wp.constant(k) for k in range(4))
 SET_SIZE = wp.constant(4)
 TOL2, STOP, ITER, MAXITER, X_MAX, X_NANS, XB = (wp.constant(SETS * SET_SIZE + k) for k in range(7))
+# the limits array: rtol^2, atol^2, the iteration cap (read by ``_start``), then whether x = 0 first (``_take_b``)
+LIMITS = 4
+FROM_ZERO = wp.constant(3)
 STATE_SIZE = SETS * SET_SIZE + 7
 vec8d = wp.types.vector(length=8, dtype=wp.float64)
 # why it stopped (the STOP slot)
@@ -207,6 +216,18 @@ def _step_p(state: wp.array(dtype=wp.float64), set_: int, z: wp.array(dtype=wp.v
 
 
 @wp.kernel(enable_backward=False)
+def _take_b(b: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), into: wp.array(dtype=wp.vec3d),
+            x: wp.array(dtype=wp.vec3d), limits: wp.array(dtype=wp.float64)):
+    """The solve's own right-hand side ``into`` = (I - P) b, P the diagonal 0/1 mask of the ``fixed`` components, and
+    x = 0 where the limits say so (``FROM_ZERO``, written by the host for each solve): a solve's first launch, inside
+    its graph."""
+    i = wp.tid()
+    into[i] = free_part(b[i], fixed[i])
+    if limits[FROM_ZERO] != wp.float64(0.0):
+        x[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel(enable_backward=False)
 def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
     """After the set-up's sums (|r|^2 and r . z into the last set, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2,
     atol^2), the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the
@@ -243,17 +264,18 @@ class CgWorkspace:
     def __init__(self, n: int, device):
         self.b, self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(5))
         self.state = wp.zeros(STATE_SIZE, dtype=wp.float64, device=device)
-        self.limits = wp.zeros(3, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap
+        self.limits = wp.zeros(LIMITS, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap, x = 0 first
         # the limits as the host writes them (pinned on a GPU, so that the solve's graph copies them in at each replay)
-        self.limits_host = wp.zeros(3, dtype=wp.float64, device="cpu", pinned=wp.get_device(device).is_cuda)
+        self.limits_host = wp.zeros(LIMITS, dtype=wp.float64, device="cpu", pinned=wp.get_device(device).is_cuda)
         self.x_max_work = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
         self.condition = wp.zeros(1, dtype=wp.int32, device=device)
         self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
         self.no_nodes = wp.empty(0, dtype=int, device=device)
         self.no_arms = wp.empty(0, dtype=wp.vec3d, device=device)
         self.no_values = wp.empty(0, dtype=wp.float64, device=device)
-        self.graph_key: tuple | None = None  # (operator's graph_key, preconditioner, x) of ``graph``
-        self.graph = None
+        # (the arrays a graph reads, the graph) by key: the operator's ``graph_key``, the preconditioner, x, the coarse
+        # inverse and, where the solve takes b itself (``definite_cg``'s ``fixed``), b and the mask
+        self.graphs: dict[tuple, tuple[tuple, object]] = {}
         self.captures = 0  # graphs captured (the rest of the solves on CUDA launched a kept one)
 
 
@@ -282,14 +304,18 @@ def launch_p_update(ws: CgWorkspace, set_: int, coarse: CoarseSpace | None, firs
 
 def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
                 M: BlockJacobi | None = None, atol: float = 0.0, workspace: CgWorkspace | None = None,
-                coarse: CoarseSpace | None = None) -> CgResult:
+                coarse: CoarseSpace | None = None, fixed: wp.array | None = None, from_zero: bool = False) -> CgResult:
     """Solves A x = b from the given x (vec3d arrays, updated in place) to |b - A x| <= max(rtol |b|, atol),
     stopping early where A (or M) is found not to be positive definite (x then holds the last iterate).
     ``coarse`` (with M; its inverse made, ``CoarseSpace.ready``): M becomes the two-level preconditioner
     M + P A_c^-1 P^T (coarse_space.py).
-    ``workspace``: work arrays and the graph kept from earlier solves of the same size (a new one otherwise); the graph is
-    reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same (b is copied into
-    the workspace, so it may differ; where b is the workspace's own ``b``, nothing is copied)."""
+    ``from_zero``: x = 0 first (instead of the given x).
+    ``workspace``: work arrays and the graphs kept from earlier solves of the same size (a new one otherwise); a graph
+    is reused where A has a ``graph_key`` (sparse_product.py) and the preconditioner and x are the same. b is copied
+    into the workspace before the solve, so it may differ (where b is the workspace's own ``b``, nothing is copied), and
+    x set to 0 there; with ``fixed`` (the 0/1 mask of the fixed components, vec3d per node) the solve's first launch
+    takes (I - P) b and sets x = 0 itself (two launches fewer before it), and its graph is then kept per b too (a kept
+    array of the caller's; the workspace holds it)."""
     device = b.device
     if workspace is not None and not len(workspace.r) == len(b) == len(x):
         raise ValueError(f"CG workspace of {len(workspace.r)} 3-vectors for b of {len(b)} and x of {len(x)}")
@@ -306,10 +332,12 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         if coarse is not None:
             coarse.apply_inverse(state, SET_SIZE * set_ + RZ)
 
-    def start():  # the limits in, r = b - A x, z = M r, p = z, their sums in the last set (not going on: no step), then
-        # the state of the first iteration
+    def start():  # the limits in, b and x where the solve takes them, r = b - A x, z = M r, p = z, their sums in the
+        # last set (not going on: no step), then the state of the first iteration
         wp.copy(ws.limits, ws.limits_host)  # the host's tolerances and cap (pinned on a GPU: read at each replay)
         state.zero_()
+        if fixed is not None:
+            wp.launch(_take_b, dim=len(b), device=device, inputs=[b, fixed, ws.b, x, ws.limits])
         A.matvec(x, ws.b, r, -1.0, 1.0)
         step_precondition(SETS - 1)
         launch_p_update(ws, SETS - 1, coarse, first=True)
@@ -328,10 +356,15 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         wp.copy(state, ws.x_max_work, dest_offset=X_MAX, count=2)
         add_dot(x, ws.b, state, XB)
 
-    if b.ptr != ws.b.ptr:  # the caller may have written b into the workspace itself
-        wp.copy(ws.b, b)
+    if fixed is not None and not len(fixed) == len(b):
+        raise ValueError(f"a fixed mask of {len(fixed)} nodes for b of {len(b)}")
+    if fixed is None:
+        if b.ptr != ws.b.ptr:  # the caller may have written b into the workspace itself
+            wp.copy(ws.b, b)
+        if from_zero:
+            x.zero_()
     # written in place: no earlier solve still reads them (each ends in a read of its state)
-    ws.limits_host.numpy()[:] = (rtol * rtol, atol * atol, float(maxiter))
+    ws.limits_host.numpy()[:] = (rtol * rtol, atol * atol, float(maxiter), float(from_zero))
     if not device.is_cuda:
         start()
         wp.capture_while(condition, unrolled)  # on the CPU: a host loop on the condition
@@ -339,8 +372,9 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
     else:  # with conditional graphs (CUDA 12.4+) the whole solve is the graph, otherwise one pass of the loop
         conditional = wp.is_conditional_graph_supported()
         key = getattr(A, "graph_key", None)
-        key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr)
-        graph = ws.graph if key and key == ws.graph_key else None
+        taken = (b.ptr, fixed.ptr) if fixed is not None else ()
+        key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr, *taken)
+        graph = ws.graphs[key][1] if key in ws.graphs else None
         if not conditional:
             start()
         if graph is None:
@@ -359,7 +393,9 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
             graph = capture.graph
             ws.captures += 1
             if key:
-                ws.graph_key, ws.graph = key, graph
+                if len(ws.graphs) >= KEPT_GRAPHS:
+                    del ws.graphs[next(iter(ws.graphs))]
+                ws.graphs[key] = ((b, fixed, x), graph)
         if conditional:
             wp.capture_launch(graph)
         else:  # launched CHECK_EVERY times between reads of the condition

@@ -42,7 +42,6 @@ from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult, CgWorkspace, definite_cg
-from transtac_sim.physics.reductions import free_part
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.sparse_product import (
     BlockJacobi,
@@ -114,13 +113,6 @@ def _diagonal_magnitudes(offsets: wp.array(dtype=int), row_counts: wp.array(dtyp
         d[row] = wp.vec3d(wp.abs(B[0, 0]), wp.abs(B[1, 1]), wp.abs(B[2, 2]))
 
 
-@wp.kernel(enable_backward=False)
-def _free_part(v: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), out: wp.array(dtype=wp.vec3d)):
-    """(I - P) v: v with its fixed components set to 0."""
-    i = wp.tid()
-    out[i] = free_part(v[i], fixed[i])
-
-
 #: lambda of the device's last resort, H + lambda |diag(H)|, tried in turn; at 100 the block-Jacobi-preconditioned
 #: system is close to the identity and CG converges in a few iterations
 SHIFTS = (1.0e-2, 1.0, 1.0e2)
@@ -142,9 +134,10 @@ COARSE_REFRESH_STEPS = 10
 ESTIMATE_RTOL = 0.1
 ESTIMATE_CAP_FACTOR = 2.0
 
-#: the device path returns each solution in the next of this many kept arrays, taken in turn (no allocation per solve):
-#: a solution stays valid until this many more device solves have returned theirs (a solve that returns None takes
-#: none). Newton holds at most three at once
+#: the device path returns each solution in the next of this many kept arrays, taken in turn (no allocation per solve;
+#: the rows of one array, so that a graph can read any of them: ``solution_row``): a solution stays valid until this
+#: many more device solves have returned theirs (a solve that returns None takes none). Newton holds at most three at
+#: once
 #: (newton.py: a step estimate, the Newton step and a step solved with a predicted contact, contact_prediction.py)
 SOLUTIONS = 4
 
@@ -154,7 +147,8 @@ class DeviceWork:
     """What the device path keeps between solves, so that each solve finds the arrays of the last and its CG can launch
     the graph captured then (definite_cg.py): the CG's workspace, x, the block-Jacobi inverses, the matrix's float32
     blocks (grown to the largest matrix), the coarse level of the two-level preconditioner (None: block-Jacobi
-    alone), the graphs of the solves' set-up and the ``SOLUTIONS`` arrays the solutions are returned in."""
+    alone), the graphs of the solves' set-up and the ``SOLUTIONS`` arrays the solutions are returned in (the rows of
+    one array)."""
 
     cg: CgWorkspace
     x: wp.array
@@ -162,7 +156,7 @@ class DeviceWork:
     rounded: wp.array
     coarse: CoarseSpace | None
     graphs: GraphCache  # the solves' set-up (``_solve_cg``)
-    solutions: tuple[wp.array, ...]  # the solutions returned, in turn (``_known_solution``)
+    solutions: wp.array  # (SOLUTIONS, nodes): the solutions returned, a row each in turn (``_known_solution``)
     next_solution: int = 0
 
 
@@ -199,7 +193,6 @@ class DeviceSolves:
             return None
         A, M = self._last_cg
         x = self._device_work().x
-        x.zero_()
         cap = max(50, int(ESTIMATE_CAP_FACTOR * self._converged_iterations))
         result, iterations = self._cg(A, M, rhs, x, ESTIMATE_RTOL, cap, exact_below, refine_above)
         self.estimate_iterations += iterations
@@ -215,8 +208,7 @@ class DeviceSolves:
                                     wp.empty(self._node_count, dtype=wp.mat33d, device=self.device),
                                     wp.empty(0, dtype=wp.mat33f, device=self.device), coarse,
                                     GraphCache(self.device),
-                                    tuple(wp.empty(self._node_count, dtype=wp.vec3d, device=self.device)
-                                          for _ in range(SOLUTIONS)))
+                                    wp.empty((SOLUTIONS, self._node_count), dtype=wp.vec3d, device=self.device))
         return self._work
 
     def coarse_stats(self) -> dict[str, int]:
@@ -229,15 +221,19 @@ class DeviceSolves:
 
     def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
             exact_below: float, refine_above: float = 0.0) -> tuple[CgResult, int]:
-        """CG on A x = b from x, to ``rtol``, then on from there to ``cg_tol`` where ``refine_above`` <= max |x| <
-        ``exact_below`` (mm): (the last solve's result, iterations of both). Not converged also where A is found not to
-        be positive definite (definite_cg.py; ``not_definite`` counts those; a NaN stops it the same way)."""
+        """CG on A x = (I - P) b (P: the fixed components) from x = 0, to ``rtol``, then on from there to ``cg_tol``
+        where ``refine_above`` <= max |x| < ``exact_below`` (mm): (the last solve's result, iterations of both). The
+        CG's graph takes b and sets x = 0 itself (definite_cg.py ``fixed``; b is the caller's kept array). Not converged
+        also where A is found not to be positive definite (definite_cg.py; ``not_definite`` counts those; a NaN stops it
+        the same way)."""
         work = self._device_work()
         coarse = work.coarse if work.coarse is not None and work.coarse.ready else None
-        result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse)
+        result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse, fixed=self._fixed,
+                             from_zero=True)
         total = result.iterations
         if result.converged and rtol > self.cg_tol and refine_above <= result.x_max < exact_below:
-            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse)
+            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse,
+                                 fixed=self._fixed)
             total += result.iterations
         self.not_definite += result.not_definite
         return result, total
@@ -246,12 +242,24 @@ class DeviceSolves:
         """A copy of the CG's solution ``x`` in the next of the ``SOLUTIONS`` kept arrays, kept for ``known_summary``
         with the (x . b, max |x|, finite) that the CG read with its state (``result``)."""
         work = self._device_work()
-        out = work.solutions[work.next_solution]
-        work.next_solution = (work.next_solution + 1) % len(work.solutions)
+        out = work.solutions[work.next_solution]  # a row: a view of the kept array
+        work.next_solution = (work.next_solution + 1) % work.solutions.shape[0]
         wp.copy(out, x)
         self._known = (out, (result.x_dot_b, result.x_max,
                              bool(np.isfinite(result.x_max) and np.isfinite(result.x_dot_b))))
         return out
+
+    def solution_row(self, x: wp.array) -> tuple[wp.array, int] | None:
+        """(the kept solutions, (SOLUTIONS, nodes) vec3d, and x's row in them) where ``x`` is one of the device
+        solutions this solver returned (valid as ``SOLUTIONS`` says), else None: lets a caller's CUDA graph read
+        whichever of them it is given at its replay (trial_point.py ``_try_step``)."""
+        solutions = self._work.solutions if self._work is not None else None
+        if solutions is None or x.device != solutions.device or x.shape != solutions.shape[1:]:
+            return None
+        offset, row_bytes = x.ptr - solutions.ptr, solutions.strides[0]
+        if offset < 0 or offset % row_bytes or offset // row_bytes >= solutions.shape[0]:
+            return None
+        return solutions, offset // row_bytes
 
     def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
                   coarse_from_this: bool = True, single_precision: bool = True) -> wp.array | None:
@@ -267,22 +275,19 @@ class DeviceSolves:
             work.rounded = wp.empty(len(H.values), dtype=wp.mat33f, device=self.device)
         fixed_blocks_ = self._fixed_blocks[1:]
 
-        def prologue() -> None:  # H projected, rounded and its diagonal inverted, x = 0: one graph (replay.py)
+        def prologue() -> None:  # H projected, rounded and its diagonal inverted: one graph (replay.py)
             project_fixed(H, self._fixed, fixed_blocks_)
             if single_precision:
                 round_to_float32(H, work.rounded)
             invert_diagonal(H, work.inverse)
-            work.x.zero_()
 
         work.graphs.run(("prologue", *key, H.values.ptr, len(H.values), *(a.ptr for a in fixed_blocks_),
                          work.rounded.ptr, single_precision),
                         (H.offsets, H.columns, H.row_counts, H.values, *fixed_blocks_, work.rounded), prologue)
-        b = work.cg.b  # the CG's own right-hand side (definite_cg then copies nothing)
-        wp.launch(_free_part, dim=len(b), device=self.device, inputs=[rhs, self._fixed, b])
         A = block_row_operator(H, single_precision=True, rounded=work.rounded, round_now=False) if single_precision \
             else block_row_operator(H)
         M = BlockJacobi(H, inverse=work.inverse, invert_now=False)
-        result, self.last_iterations = self._cg(A, M, b, work.x, rtol, self.cg_maxiter, exact_below)
+        result, self.last_iterations = self._cg(A, M, rhs, work.x, rtol, self.cg_maxiter, exact_below)
         if not result.converged:
             return None
         self._converged_iterations = self.last_iterations

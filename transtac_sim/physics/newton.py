@@ -86,6 +86,13 @@ a solve's limits are copied in by the CG's graph from pinned memory (definite_cg
 (device_linear.py ``SOLUTIONS``): press_slide frames 1-9 0.91-0.94x the time with the gradient read, the trial point,
 a solve's set-up and the wrench changed (one lease, 0.103-0.107 s per frame), 0.71-0.89x with the contact records too
 (a slower lease), then a median of about 0.96x with the rest (0.100-0.110 s per frame, a median of 0.105 s).
+
+Issue 12, tenth pass (BENCHMARKS.md ``fem_launches_folded_gpu``): the device CG's graph takes a solve's right-hand side
+and sets x = 0 itself (definite_cg.py ``fixed``), the accepted trial is copied into u by the next gradient's graph
+(``take_trial``), the trial point is launched in the trial's graph, reading du's row among the kept solutions and alpha
+at each replay (trial_point.py ``_try_step``), and a frame's records are launched together, then read (solver.py): 2.0
+instead of 4.6 one-by-one launches per Newton iteration, 5 % less host time outside the reads, the frames within their
+spread (a median of 0.107 s, as the tree before alternated with them).
 """
 
 from __future__ import annotations
@@ -103,6 +110,7 @@ from transtac_sim.physics.reductions import (
     read_negated_free,
     step_summary,
 )
+from transtac_sim.physics.trial_point import TrialPoints
 from transtac_sim.physics.warm_start import lifts_off
 
 #: Inexact Newton (Eisenstat & Walker 1996): the CG (device; on the host, preconditioned with the kept factorisation,
@@ -130,15 +138,7 @@ STALL_ALPHA = 1.0 / 16.0
 EXACT_BELOW = 100.0
 
 
-@wp.kernel(enable_backward=False)
-def _trial_point(u: wp.array(dtype=wp.vec3d), du: wp.array(dtype=wp.vec3d), alpha: wp.float64,
-                 out: wp.array(dtype=wp.vec3d)):
-    """out = u + alpha du (mm, per node): a line search's trial, written where a copy and an axpy took two launches."""
-    i = wp.tid()
-    out[i] = u[i] + alpha * du[i]
-
-
-class NewtonSteps(FrictionLag):
+class NewtonSteps(FrictionLag, TrialPoints):
     """Newton's method for ``QuasiStaticSolver`` (which provides the fields, assembly and linear solver); when
     friction's lag moves inside it: friction_lag.py."""
 
@@ -172,10 +172,12 @@ class NewtonSteps(FrictionLag):
         step_max = np.inf  # max |du| (mm) of the last Newton step
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
+        take_trial = False  # the line search's accepted trial is still to be copied into u (by the next gradient)
         while True:
             lag_open = friction and lags < s.friction_lag_moves
             rhs, g_norm, load, lag_change, energy_at_u = self._read_gradient(ind, full_step and lag_open,
-                                                                             energy_here is None)
+                                                                             energy_here is None, take_trial)
+            take_trial = False
             energy_here = energy_here if energy_at_u is None else energy_at_u
             if g_norm == 0.0:  # e.g. nothing touches yet: already at equilibrium
                 return True, iterations, "", 0.0
@@ -236,8 +238,7 @@ class NewtonSteps(FrictionLag):
             may_predict = lifting and ind.count > 0 and alpha == 1.0 and not self._linear.last_shift
             newton_step = None  # (du, du . rhs, max |du|, its next alpha) while a predicted step is tried in its place
             while alpha > 1e-6:
-                self._set_trial(du, alpha)
-                e_try, det_try = self._energy_and_min_det(self._u_try, ind)
+                e_try, det_try = self._try_step(du, alpha, ind)
                 if np.isfinite(e_try) and e_try <= energy + 1e-4 * alpha * slope + 1e-12 * abs(energy):
                     if (det_try if det_try is not None else self._min_det(self._u_try)) > 0.0:
                         break
@@ -282,28 +283,24 @@ class NewtonSteps(FrictionLag):
                     return True, iterations, "", pen
                 raises, full_step, short_steps = raises + 1, False, 0
                 continue
-            wp.copy(self.u.dof_values, self._u_try.dof_values)
-            full_step, energy_here = alpha == 1.0, e_try
+            full_step, energy_here, take_trial = alpha == 1.0, e_try, True  # u = u_try with the next gradient
             short_steps = short_steps + 1 if alpha <= STALL_ALPHA else 0
             if may_stall and short_steps == STALL_STEPS:
+                wp.copy(self.u.dof_values, self._u_try.dof_values)
                 return False, iterations, (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} "
                                            "or less by the line search"), 0.0
 
-    def _set_trial(self, du: wp.array, alpha: float) -> None:
-        """u_try = u + alpha du, in one launch (``_trial_point``)."""
-        wp.launch(_trial_point, dim=len(du), device=self.device,
-                  inputs=[self.u.dof_values, du, wp.float64(alpha), self._u_try.dof_values])
-
-    def _read_gradient(self, ind, lag_change: bool, energy: bool) -> tuple:
+    def _read_gradient(self, ind, lag_change: bool, energy: bool, take_trial: bool = False) -> tuple:
         """(-g and |g| on the free components, the normal load on the support, |u - u_lag| where ``lag_change``, E(u)
-        where ``energy`` on a GPU) at self.u, in one read (None for what is not asked for): the barrier's energy (for
+        where ``energy`` on a GPU) at self.u (set to the line search's trial first where ``take_trial``, in the
+        gradient's graph: ``_gradient``), in one read (None for what is not asked for): the barrier's energy (for
         the Hessian, ``_barrier_acts``), on a GPU whether the contact Hessian's side subset still holds
         (``_contact_subset``), friction's lag distance (``_lag_change``) and E (for the line search, which would read it
         otherwise; on the CPU, where a read costs no wait, E is left to it: an E evaluated here is wasted where the pass
         moves the lag or converges) are reduced on the device and read with |g|. -g goes into the kept ``self._rhs``
         (the next call overwrites it), and the reductions and copies before the read are replayed as one CUDA graph
         on a GPU."""
-        g = self._gradient(ind)
+        g = self._gradient(ind, take_trial)
         coverage = self.device.is_cuda and ind.count > 0  # the contact side subset's flag (``_gradient`` launched it)
         energy = energy and self.device.is_cuda
         if energy:

@@ -98,9 +98,10 @@ class SolverRecord:
     predicted_contacts: int = 0  # Newton steps solved again with the contact they predicted (contact_prediction.py)
     # |gradient| (N) at the solution once friction's lag (normal pressure and tangent plane) is moved there: what the lag
     # leaves unbalanced where its ``friction_lag_moves`` ran out before it converged (``residual`` is taken with the lag
-    # where Newton left it; a converged lag leaves 1e-6 to 1e-4 N, contact_records.py ``_friction_lag_residual``); 0
-    # without friction. On press_slide's motion on the tiny mesh (4 moves) it is below 3e-3 N
-    # but in one frame, 0.065 N against a friction force of 1.2 N (BENCHMARKS.md ``fem_friction_lag_residual``)
+    # where Newton left it; a converged lag leaves 1e-6 to 1e-4 N, contact_records.py
+    # ``_launch_friction_lag_residual``); 0 without friction. On press_slide's motion on the tiny mesh (4 moves) it is
+    # below 3e-3 N but in one frame, 0.065 N against a friction force of 1.2 N (BENCHMARKS.md
+    # ``fem_friction_lag_residual``)
     friction_lag_residual_n: float = 0.0
 
 

@@ -144,17 +144,23 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
         self._energy_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # ``_energy``'s total (N mm)
         self._det_work = (wp.empty(self._q_det.total_point_count(), dtype=wp.float64, device=self.device),
                           reduction_buffer(3, self.device))  # ``_min_det``'s det F and extremes
+        # the line-search trial's alpha and du's row among the linear solver's kept solutions, as the host writes them
+        # (pinned on a GPU: the trial's graph copies them in at each replay) and on the device (trial_point.py)
+        self._trial_host = wp.zeros(2, dtype=wp.float64, device="cpu", pinned=self.device.is_cuda)
+        self._trial_step = wp.zeros(2, dtype=wp.float64, device=self.device)
         self._g = wp.empty_like(self.u.dof_values)  # ``_gradient``'s result (N per node)
         self._barrier_sum = wp.zeros(1, dtype=wp.float64, device=self.device)  # the barrier's energy at ``_gradient``
         self._lag_work = reduction_buffer(2, self.device)  # friction_lag.py ``_launch_lag_change``
         self._rhs = wp.empty_like(self.u.dof_values)  # -g on the free dofs (newton.py ``_read_gradient``)
         self._gradient_read = negated_free_buffer(5, self.device)  # |g|, the load and what is read with them
         self._wrench_work = wp.zeros(6 * len(self.indenters), dtype=wp.float64, device=self.device)  # ``_wrench``
-        st = self._contact_state  # friction's lag kept while ``_friction_lag_residual`` moves it
+        st = self._contact_state  # friction's lag kept while ``_launch_friction_lag_residual`` moves it
         self._lag_kept = (wp.empty_like(st.lag_g), wp.empty_like(st.lag_n))
         self._penetration_work = (wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device),
                                   reduction_buffer(3, self.device))  # ``_max_penetration``'s values and extremes
         self._free_norm_work = (wp.empty_like(self._g), negated_free_buffer(0, self.device))  # ``_free_norm``'s
+        # u and friction's stretch at a frame's start, put back where the frame fails (``solve_frame``)
+        self._frame_start = (wp.empty_like(self.u.dof_values), wp.empty_like(self._contact_state.stick_next))
         self._stiff_work = wp.empty(self._q_contact.total_point_count(), dtype=wp.int8, device=self.device)  # 1: stiff
         self._graphs = GraphCache(self.device)  # the solver's launch sequences as CUDA graphs (replay.py)
         self._dev = None  # the deviatoric term's constant Hessian and gradient at u = 0 (assembly.py ``_deviatoric``)
@@ -318,8 +324,9 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
         t0 = time.perf_counter()
         frame = self.frame_index
         self.stats = Counter()
-        u_frame_start = wp.clone(self.u.dof_values)
-        stick_frame_start = wp.clone(self._contact_state.stick_next)
+        u_frame_start, stick_frame_start = self._frame_start
+        wp.copy(u_frame_start, self.u.dof_values)
+        wp.copy(stick_frame_start, self._contact_state.stick_next)
         tried = []
         total_iterations, steps = 0, 0
         # the frame's motion in units of 1/2**max_substep_halvings: from `done` in steps of `size` (halved at a failure)
@@ -362,14 +369,18 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
                 f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
         ind = self._last_ind
-        lag_residual = self._friction_lag_residual(ind)
-        wrench = self._wrench(ind)
+        # the frame's records launched, then read: the first read waits for all of them, the others for nothing
+        lagged = self._launch_friction_lag_residual(ind)
+        self._launch_wrench(ind)
+        self._launch_min_det(self.u)
+        lag_residual = self._read_free_norm() if lagged else 0.0
+        wrench = self._read_wrench()
         record = SolverRecord(
             converged=True,
             iterations=total_iterations,
             residual=residual,
             friction_lag_residual_n=lag_residual,
-            min_det_f=self._min_det(self.u),  # > 0: no step that inverts an element is ever accepted
+            min_det_f=self._read_min_det(),  # > 0: no step that inverts an element is ever accepted
             seconds=time.perf_counter() - t0,
             substeps=steps,
             max_penetration_mm=pen,
