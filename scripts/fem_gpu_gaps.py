@@ -49,7 +49,7 @@ MARKED = {
                         "_min_det", "_launch_min_det", "_read_min_det", "_free_norm", "_read_free_norm",
                         "_max_penetration", "_raise_stiffness", "_move_lag", "_update_lag", "_launch_lag_change",
                         "_launch_friction_lag_residual", "_keep_stick", "_launch_wrench", "_read_wrench",
-                        "_warm_start", "_predict_contact", "_indenter_struct"),
+                        "_warm_start", "_predict_contact", "_indenter_struct", "_frame_records"),
     LinearSolver: ("solve", "solve_last", "_solve_cg", "_cg", "_known_solution", "known_summary"),
 }
 FRAME = "QuasiStaticSolver.solve_frame"  # the counted windows

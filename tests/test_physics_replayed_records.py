@@ -123,6 +123,27 @@ def test_the_trial_graph_reads_the_step_and_alpha_it_is_given(device):
         assert captured[2] > captured[1] and replaying.captures == captured[2], (captured, replaying.captures)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_frame_records_launched_together_equal_each_read_on_its_own(device):
+    """solver.py ``_frame_records``: friction's lag residual, the wrench and the smallest det F launched together and
+    then read equal each launched and read on its own (no launch overwrites what another reads), for changed states."""
+    solver, ind = _pressed_solver(device=device)
+    u0 = solver.u.dof_values.numpy().copy()
+    for scale in (1.0, 0.9, 0.95):  # launched, captured, then replayed
+        solver.u.dof_values.assign(scale * u0)
+        solver.u_lag.dof_values.assign(0.9 * scale * u0)  # a lag behind u
+        solver._update_lag(ind)
+        lag, wrench, min_det = solver._frame_records(ind)
+        solver._launch_friction_lag_residual(ind)
+        alone_lag = solver._read_free_norm()
+        solver._launch_wrench(ind)
+        alone_wrench = solver._read_wrench()
+        alone_min_det = solver._min_det(solver.u)
+        assert lag > 0.0 and min_det > 0.0 and np.abs(wrench).max() > 0.0
+        np.testing.assert_allclose([lag, min_det], [alone_lag, alone_min_det], rtol=1e-12)
+        np.testing.assert_allclose(wrench, alone_wrench, rtol=1e-12, atol=1e-15)
+
+
 def test_free_norm_refuses_a_vector_of_another_mesh():
     solver, _ = _pressed_solver()
     with pytest.raises(ValueError, match="a gradient of 5 nodes"):

@@ -76,7 +76,8 @@ CHECK_EVERY = 3  # host path without conditional graphs: passes of the loop (UNR
 UNROLL = 3  # iterations per pass of the loop (a multiple of SETS)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
-#: CUDA graphs a workspace keeps, one per solve's arrays (the oldest dropped first): device_linear.py's solves take b
+#: CUDA graphs a workspace keeps, one per solve's arrays (the least recently used dropped first): device_linear.py's
+#: solves take b
 #: from Newton's right-hand side or a predicted contact's (contact_prediction.py), with the float32 or float64 product
 KEPT_GRAPHS = 4
 
@@ -374,7 +375,10 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         key = getattr(A, "graph_key", None)
         taken = (b.ptr, fixed.ptr) if fixed is not None else ()
         key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr, *taken)
-        graph = ws.graphs[key][1] if key in ws.graphs else None
+        kept = ws.graphs.pop(key, None) if key else None
+        if kept is not None:  # the most recently used last: the oldest is dropped first
+            ws.graphs[key] = kept
+        graph = kept[1] if kept is not None else None
         if not conditional:
             start()
         if graph is None:

@@ -254,7 +254,8 @@ class DeviceSolves:
         solutions this solver returned (valid as ``SOLUTIONS`` says), else None: lets a caller's CUDA graph read
         whichever of them it is given at its replay (trial_point.py ``_try_step``)."""
         solutions = self._work.solutions if self._work is not None else None
-        if solutions is None or x.device != solutions.device or x.shape != solutions.shape[1:]:
+        if solutions is None or x.device != solutions.device or x.dtype != solutions.dtype \
+                or x.shape != solutions.shape[1:] or x.strides != solutions.strides[1:]:
             return None
         offset, row_bytes = x.ptr - solutions.ptr, solutions.strides[0]
         if offset < 0 or offset % row_bytes or offset // row_bytes >= solutions.shape[0]:

@@ -368,19 +368,13 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
                 f"max_substep_halvings={self.settings.max_substep_halvings}, "
                 f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
             )
-        ind = self._last_ind
-        # the frame's records launched, then read: the first read waits for all of them, the others for nothing
-        lagged = self._launch_friction_lag_residual(ind)
-        self._launch_wrench(ind)
-        self._launch_min_det(self.u)
-        lag_residual = self._read_free_norm() if lagged else 0.0
-        wrench = self._read_wrench()
+        lag_residual, wrench, min_det = self._frame_records(self._last_ind)
         record = SolverRecord(
             converged=True,
             iterations=total_iterations,
             residual=residual,
             friction_lag_residual_n=lag_residual,
-            min_det_f=self._read_min_det(),  # > 0: no step that inverts an element is ever accepted
+            min_det_f=min_det,  # > 0: no step that inverts an element is ever accepted
             seconds=time.perf_counter() - t0,
             substeps=steps,
             max_penetration_mm=pen,
@@ -396,6 +390,15 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
         self.frame_index += 1
         return FrameResult(self.nodal_displacement()[self._node_of_vertex], wrench[:, :3], wrench[:, 3:], record,
                            poses)
+
+    def _frame_records(self, ind) -> tuple[float, np.ndarray, float]:
+        """(friction's lag residual (N), the wrench ((indenters, 6): N, N mm), the smallest det F) at the frame's
+        solution: launched together, then read, so that the first read waits for all of them and the others for
+        nothing."""
+        lagged = self._launch_friction_lag_residual(ind)
+        self._launch_wrench(ind)
+        self._launch_min_det(self.u)
+        return (self._read_free_norm() if lagged else 0.0), self._read_wrench(), self._read_min_det()
 
     def snapshot(self):
         """Opaque copy of the solver state (to try a frame and go back, e.g. press-to-force)."""
