@@ -180,7 +180,7 @@ def oracle_lag(poses: np.ndarray, solutions: np.ndarray, part: str = "both",
         NewtonSteps._lag_change = lambda self: 0.0
         read_gradient = getattr(NewtonSteps, "_read_gradient", None)
         if read_gradient is not None:
-            NewtonSteps._read_gradient = lambda self, ind, lag_change, energy: read_gradient(self, ind, False, energy)
+            NewtonSteps._read_gradient = lambda self, ind, lag_change, *rest: read_gradient(self, ind, False, *rest)
 
 
 def _relative_difference(g: np.ndarray, reference: np.ndarray) -> float:

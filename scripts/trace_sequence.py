@@ -180,8 +180,8 @@ def _trace_curvature() -> None:
         bsr_mv(H, p, Hp, alpha=1.0, beta=0.0)
         return float((P * Hp.numpy()).sum() / (P * P).sum())
 
-    def measured_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None):
-        result = cg(A, b, x, rtol, maxiter, M, atol, workspace, coarse)
+    def measured_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None, **taken):
+        result = cg(A, b, x, rtol, maxiter, M, atol, workspace, coarse, **taken)
         if result.not_definite and last.get("exact") and "H" in last and workspace is not None:
             solver, p = last["solver"], workspace.p
             P = p.numpy()
@@ -238,8 +238,8 @@ def _trace_solver() -> None:
               f"{dict(self.stats)}", flush=True)
         return ok, iterations, why, pen
 
-    def logged_cg(A, b, x, rtol, maxiter, M=None, atol=0.0, workspace=None, coarse=None):
-        result = cg(A, b, x, rtol, maxiter, M, atol, workspace, coarse)
+    def logged_cg(A, b, x, rtol, maxiter, *args, **kwargs):
+        result = cg(A, b, x, rtol, maxiter, *args, **kwargs)
         if not result.converged:
             print(f"    device CG stopped ({'not positive definite' if result.not_definite else 'iteration cap'}) "
                   f"after {result.iterations} of {maxiter} iterations, rtol {rtol:.1e}", flush=True)
