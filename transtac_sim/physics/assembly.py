@@ -132,7 +132,7 @@ class Assembly:
         (E copied next to the det F's extremes, one read), so that the host waits once (most trials are taken, and the
         det F then decides); on the CPU, where a read costs no wait, the det F is None (``_min_det`` where it is
         needed). ``prepare``: (what it adds to the graph's key, launches) that make u, run first in the same graph
-        (newton.py: the trial point; GPU only)."""
+        (trial_point.py: the trial point; GPU only)."""
         if not self.device.is_cuda:
             return self._energy(u, ind), None
         out = self._det_work[1]

@@ -77,8 +77,8 @@ UNROLL = 3  # iterations per pass of the loop (a multiple of SETS)
 DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
 DOT_THREADS = 256
 #: CUDA graphs a workspace keeps, one per solve's arrays (the least recently used dropped first): device_linear.py's
-#: solves take b
-#: from Newton's right-hand side or a predicted contact's (contact_prediction.py), with the float32 or float64 product
+#: solves take b from Newton's right-hand side or a predicted contact's (contact_prediction.py), with the float32 or
+#: float64 product
 KEPT_GRAPHS = 4
 
 # the state array: SETS sets of an iteration's slots (iteration k uses set k mod SETS: whether it goes on, and its sums
@@ -376,7 +376,7 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         taken = (b.ptr, fixed.ptr) if fixed is not None else ()
         key = key and (key, inverse.ptr, x.ptr, coarse is not None and coarse.inverse.ptr, *taken)
         kept = ws.graphs.pop(key, None) if key else None
-        if kept is not None:  # the most recently used last: the oldest is dropped first
+        if kept is not None:  # moved to the end: the least recently used is dropped first
             ws.graphs[key] = kept
         graph = kept[1] if kept is not None else None
         if not conditional:
