@@ -7,11 +7,15 @@
 On a shared machine one run of a frame loop moves by up to about 10 % from the next (BENCHMARKS.md
 ``fem_launches_folded_gpu``), more than many changes move it, and the speed of a machine drifts within a lease. So a
 change is measured as pairs: ``run`` starts ``scripts/fem_phase_profile.py`` with the tree before (``BEFORE_ROOT``: an
-exported tree holding ``transtac_sim`` and ``scripts``, put first on ``PYTHONPATH``), then with this tree, ``--pairs``
-times in turn, and writes each run's output to ``OUT/b<k>.txt`` and ``OUT/a<k>.txt``. ``summarize`` reads those files
-(the profile's summary line, "... N frame(s), S s, I Newton iterations ..."): each tree's median seconds and Newton
-iterations, and the after/before ratio of each pair with their median and a 95 % percentile bootstrap interval of that
-median (resampling the pairs, a fixed seed). An interval that holds 1 says the runs cannot tell the trees apart.
+exported tree holding ``transtac_sim`` and ``scripts``, put first on ``PYTHONPATH``; its own script runs) and with this
+tree (this checkout first on ``PYTHONPATH``), ``--pairs`` times, the order swapped in every other pair (so that a
+machine that drifts within a pair favours neither), and writes each run's output to ``OUT/b<k>.txt`` and
+``OUT/a<k>.txt``. Both runs start in this checkout, so the scene, material and hardware files named by relative paths
+are this tree's. ``summarize`` reads those files (the profile's summary line, "... N frame(s), S s, I Newton iterations
+..."): each tree's median seconds and Newton iterations, and the after/before ratio of each pair with their median and
+a 95 % percentile bootstrap interval of that median (resampling the pairs, a fixed seed). An interval that holds 1 says
+the runs cannot tell the trees apart. With few pairs (under about 10) the interval's ends fall on pair ratios and it is
+likely narrower than the true uncertainty: read it as a lower bound on how little is known.
 """
 
 from __future__ import annotations
@@ -108,6 +112,7 @@ def run(before_root: Path = typer.Argument(..., help="an exported tree (transtac
         pairs: int = typer.Option(8, min=1, help="runs of each tree, alternated"),
         profile_args: list[str] = typer.Argument(None, help="after --: fem_phase_profile.py's arguments")) -> None:
     """Alternated runs of scripts/fem_phase_profile.py with the tree before and this tree, then ``summarize``."""
+    before_root = before_root.resolve()
     script = before_root / "scripts" / "fem_phase_profile.py"
     if not (before_root / "transtac_sim").is_dir() or not script.is_file():
         raise typer.BadParameter(f"{before_root} has no transtac_sim/ and scripts/fem_phase_profile.py: export one "
@@ -116,18 +121,25 @@ def run(before_root: Path = typer.Argument(..., help="an exported tree (transtac
     if any(out.glob("[ab]*.txt")):
         raise typer.BadParameter(f"{out} already holds runs: give an empty folder")
     path = os.environ.get("PYTHONPATH", "")
-    trees = {"b": ([sys.executable, str(script)], {"PYTHONPATH": os.pathsep.join(p for p in (str(before_root), path)
-                                                                                   if p)}),
-             "a": ([sys.executable, str(REPO / "scripts" / "fem_phase_profile.py")], {})}
+    trees = {tree: ([sys.executable, str(root / "scripts" / "fem_phase_profile.py")],
+                    {"PYTHONPATH": os.pathsep.join(p for p in (str(root), path) if p)})
+             for tree, root in (("b", before_root), ("a", REPO))}
     for k in range(1, pairs + 1):
-        for tree, (command, env) in trees.items():
+        for tree in ("b", "a") if k % 2 else ("a", "b"):
+            command, env = trees[tree]
             result = subprocess.run([*command, *(profile_args or [])], cwd=REPO, env=os.environ | env,
                                     capture_output=True, text=True)
-            (out / f"{tree}{k}.txt").write_text(result.stdout + result.stderr)
-            if result.returncode:
-                raise typer.BadParameter(f"the {'before' if tree == 'b' else 'after'} tree's run {k} failed "
-                                         f"(exit {result.returncode}); its output: {out / f'{tree}{k}.txt'}")
-            print(f"{tree}{k}: {profile_summary(result.stdout)[0]:.3f} s", flush=True)
+            log = out / f"{tree}{k}.txt"
+            log.write_text(result.stdout + result.stderr)
+            name = "before" if tree == "b" else "after"
+            try:
+                if result.returncode:
+                    raise ValueError(f"exit {result.returncode}")
+                seconds = profile_summary(result.stdout)[0]
+            except ValueError as error:
+                print(f"the {name} tree's run {k} failed ({error}); its output: {log}", file=sys.stderr)
+                raise typer.Exit(1) from None
+            print(f"{tree}{k}: {seconds:.3f} s", flush=True)
     summarize(out)
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import typer
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "scripts"))
@@ -56,12 +57,47 @@ def test_a_failed_run_or_missing_pairs_are_refused(tmp_path):
         paired_timings.summarize_pairs([(1.0, 1)], [])
 
 
+def _stub_tree(root: Path, name: str) -> Path:
+    """A tree whose transtac_sim says where it was imported from and whose profile prints a summary line."""
+    (root / "transtac_sim").mkdir(parents=True)
+    (root / "transtac_sim" / "__init__.py").write_text(f"TREE = {name!r}\n")
+    (root / "scripts").mkdir()
+    (root / "scripts" / "fem_phase_profile.py").write_text(
+        "import sys, transtac_sim\n"
+        "print(transtac_sim.TREE, transtac_sim.__file__, sys.argv[1:])\n"
+        "print('x on cpu: 1 frame(s), 1.00 s, 8 Newton iterations')\n")
+    return root
+
+
+def test_each_run_imports_its_own_tree(tmp_path, monkeypatch):
+    """``run`` puts the tree before first on PYTHONPATH and runs its own profile (not the installed package), the
+    profile's arguments passed on, the order swapped in every other pair; a run without a summary line is refused."""
+    before = _stub_tree(tmp_path / "before", "before")
+    after = _stub_tree(tmp_path / "after", "after")
+    monkeypatch.setattr(paired_timings, "REPO", after)
+    out = tmp_path / "runs"
+    paired_timings.run(before, out, 2, ["scene.toml", "--frames", "1"])
+    for k in (1, 2):
+        b, a = ((out / f"{tree}{k}.txt").read_text() for tree in "ba")
+        assert b.startswith("before " + str(before / "transtac_sim" / "__init__.py")), b
+        assert a.startswith("after " + str(after / "transtac_sim" / "__init__.py")), a
+        assert "['scene.toml', '--frames', '1']" in b and "['scene.toml', '--frames', '1']" in a
+    assert (out / "a2.txt").stat().st_mtime_ns <= (out / "b2.txt").stat().st_mtime_ns  # the second pair after first
+    (before / "scripts" / "fem_phase_profile.py").write_text("print('no summary')\n")
+    with pytest.raises(typer.Exit):
+        paired_timings.run(before, tmp_path / "failed", 1, [])
+    with pytest.raises(typer.BadParameter, match="has no transtac_sim"):
+        paired_timings.run(tmp_path / "nowhere", tmp_path / "none", 1, [])
+
+
+@pytest.mark.slow
 def test_one_alternated_pair_of_the_tiny_fixture(tmp_path, capsys):
-    """``run`` with this tree as the tree before too: both runs written, the same Newton iterations, summarized."""
+    """``run`` with this tree as the tree before too, on the real profile: both runs written, the same Newton
+    iterations, summarized; a folder that holds runs is refused."""
     out = tmp_path / "runs"
     paired_timings.run(REPO, out, 1, ["tests/fixtures/tiny_press.toml", "--frames", "1"])
     before, after = (paired_timings.profile_summary((out / f"{tree}1.txt").read_text()) for tree in "ba")
     assert before[1] == after[1] > 0 and before[0] > 0 and after[0] > 0
     assert "after / before, pair by pair: median" in capsys.readouterr().out
-    with pytest.raises(Exception, match="already holds runs"):
+    with pytest.raises(typer.BadParameter, match="already holds runs"):
         paired_timings.run(REPO, out, 1, ["tests/fixtures/tiny_press.toml", "--frames", "1"])
