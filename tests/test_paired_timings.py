@@ -57,13 +57,15 @@ def test_a_failed_run_or_missing_pairs_are_refused(tmp_path):
         paired_timings.summarize_pairs([(1.0, 1)], [])
 
 
-def _stub_tree(root: Path, name: str) -> Path:
-    """A tree whose transtac_sim says where it was imported from and whose profile prints a summary line."""
+def _stub_tree(root: Path, name: str, order: Path) -> Path:
+    """A tree whose transtac_sim says where it was imported from, whose profile prints a summary line and appends the
+    tree's name to ``order``."""
     (root / "transtac_sim").mkdir(parents=True)
     (root / "transtac_sim" / "__init__.py").write_text(f"TREE = {name!r}\n")
     (root / "scripts").mkdir()
     (root / "scripts" / "fem_phase_profile.py").write_text(
         "import sys, transtac_sim\n"
+        f"open({str(order)!r}, 'a').write(transtac_sim.TREE + '\\n')\n"
         "print(transtac_sim.TREE, transtac_sim.__file__, sys.argv[1:])\n"
         "print('x on cpu: 1 frame(s), 1.00 s, 8 Newton iterations')\n")
     return root
@@ -72,8 +74,9 @@ def _stub_tree(root: Path, name: str) -> Path:
 def test_each_run_imports_its_own_tree(tmp_path, monkeypatch):
     """``run`` puts the tree before first on PYTHONPATH and runs its own profile (not the installed package), the
     profile's arguments passed on, the order swapped in every other pair; a run without a summary line is refused."""
-    before = _stub_tree(tmp_path / "before", "before")
-    after = _stub_tree(tmp_path / "after", "after")
+    order = tmp_path / "order.log"
+    before = _stub_tree(tmp_path / "before", "before", order)
+    after = _stub_tree(tmp_path / "after", "after", order)
     monkeypatch.setattr(paired_timings, "REPO", after)
     out = tmp_path / "runs"
     paired_timings.run(before, out, 2, ["scene.toml", "--frames", "1"])
@@ -82,7 +85,7 @@ def test_each_run_imports_its_own_tree(tmp_path, monkeypatch):
         assert b.startswith("before " + str(before / "transtac_sim" / "__init__.py")), b
         assert a.startswith("after " + str(after / "transtac_sim" / "__init__.py")), a
         assert "['scene.toml', '--frames', '1']" in b and "['scene.toml', '--frames', '1']" in a
-    assert (out / "a2.txt").stat().st_mtime_ns <= (out / "b2.txt").stat().st_mtime_ns  # the second pair after first
+    assert order.read_text().split() == ["before", "after", "after", "before"]  # the second pair's order swapped
     (before / "scripts" / "fem_phase_profile.py").write_text("print('no summary')\n")
     with pytest.raises(typer.Exit):
         paired_timings.run(before, tmp_path / "failed", 1, [])

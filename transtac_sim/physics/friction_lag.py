@@ -51,11 +51,10 @@ class FrictionLag:
         """max |u - u_lag| (mm): how far friction's lag is from the current u."""
         return max_abs(self.u.dof_values, self.u_lag.dof_values)
 
-    def _launch_lag_change(self) -> wp.array:
+    def _launch_lag_change(self) -> None:
         """``_lag_change`` without its read: [max |u - u_lag| over the entries without a NaN, count of entries with a
-        NaN] into a kept buffer (reductions.py ``launch_max_abs``), returned for the caller's read."""
+        NaN] into the kept ``self._lag_work`` (reductions.py ``launch_max_abs``), for the caller's read."""
         launch_max_abs(self.u.dof_values, self._lag_work, self.u_lag.dof_values)
-        return self._lag_work
 
     def _lag_threshold(self, change: float) -> float | None:
         """The remaining step (mm) below which friction's lag moves for a lag ``change`` (mm) away (``_move_lag``), or
