@@ -21,7 +21,9 @@ one worker have, and counts the last: what is made once per process (Warp's kern
 used in a later frame, such as the warm start of a slide) is then paid for by the earlier passes.
 
 To compare Newton variants in one run: ``--forcing-max F`` (newton.FORCING_MAX; 0: every CG solve to its
-tight tolerance), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
+tight tolerance), ``--force-forcing F`` (physics/convergence_tests.py FORCE_FORCING: with the force test on, no
+system solved tighter than F times the test's bound over |g|; 0: the tree before BENCHMARKS.md
+``fem_force_forcing_gpu``), ``--clamped-only`` (no exact-Hessian attempt), ``--no-estimate`` (no step estimate from the
 last system: the CG path before issue 12's third pass), ``--cg-tol T`` (the tight CG tolerance, relative
 residual), ``--warp-spmv`` (Warp's ``bsr_mv`` in the CG instead of physics/sparse_product.py), ``--float64-cg-matrix``
 (the device CG's product on the float64 matrix, as before it read a float32 copy), ``--fresh-cg-graphs`` (each device
@@ -72,7 +74,14 @@ import warp as wp
 from warp.optim.linear import aslinearoperator, cg
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import QuasiStaticSolver, contact_sides, definite_cg, device_linear, newton
+from transtac_sim.physics import (
+    QuasiStaticSolver,
+    contact_sides,
+    convergence_tests,
+    definite_cg,
+    device_linear,
+    newton,
+)
 from transtac_sim.physics.coarse_space import CoarseSpace
 from transtac_sim.physics.definite_cg import CgResult
 from transtac_sim.physics.elasticity import CLAMPED
@@ -154,6 +163,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
          linear_solver: str = typer.Option("auto", help="auto, direct or cg"),
          frames: int = typer.Option(2, min=1), skip_first: bool = typer.Option(False),
          forcing_max: float = typer.Option(newton.FORCING_MAX, min=0.0, max=1.0),
+         force_forcing: float = typer.Option(convergence_tests.FORCE_FORCING, min=0.0, max=1.0),
          clamped_only: bool = typer.Option(False), no_estimate: bool = typer.Option(False),
          warm_start: str = solver_variants.WARM_START_OPTION,
          exact_below: float = solver_variants.EXACT_BELOW_OPTION,
@@ -198,6 +208,7 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
                                              "the lag then moves as by default)"),
          ) -> None:
     newton.FORCING_MAX = forcing_max
+    convergence_tests.FORCE_FORCING = force_forcing
     device_linear.COARSE_REFRESH_STEPS = coarse_refresh_steps
     contact_sides.CONTACT_RINGS_GPU = contact_rings
     solver_variants.apply(warm_start, exact_below, lag_move_ratio, estimate_rtol, estimate_cap_factor, estimate_band,
@@ -309,7 +320,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
     iterations = sum(frame_iterations[1:] if skip_first and len(frame_iterations) > 1 else frame_iterations)
     total = sum(counted)
     print(f"\n{scene} on {wp.get_device(device if device != 'cuda' else 'cuda:0')}, linear solver {linear_solver}, "
-          f"forcing max {forcing_max:g}, lag move ratios {solver_variants.friction_lag.LAG_MOVE_RATIOS}"
+          f"forcing max {forcing_max:g}, force forcing {force_forcing:g}, lag move ratios "
+          f"{solver_variants.friction_lag.LAG_MOVE_RATIOS}"
           f"{'' if press_lag_move_ratio is None else f' ({press_lag_move_ratio:g} on presses)'}, estimate rtol "
           f"{device_linear.ESTIMATE_RTOL:g} (cap {device_linear.ESTIMATE_CAP_FACTOR:g}x), "
           f"friction lag moves {physics.friction_lag_moves}, exact below "

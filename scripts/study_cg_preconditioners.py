@@ -67,12 +67,13 @@ def _systems(scene: Path, frames: int) -> tuple[list[System], QuasiStaticSolver]
     holder: dict = {}
     solve_cg, solve_step = device_linear.DeviceSolves._solve_cg, QuasiStaticSolver._solve_step
 
-    def keeping(self, H, rhs, rtol, exact_below, coarse_from_this=True):
-        x = solve_cg(self, H, rhs, rtol, exact_below, coarse_from_this)
+    def keeping(self, H, rhs, rtol, exact_below, coarse_from_this=True, **kwargs):
+        x = solve_cg(self, H, rhs, rtol, exact_below, coarse_from_this, **kwargs)
         if x is not None and coarse_from_this:  # a Newton system (not a shifted one)
             b = rhs.numpy().reshape(-1) * (1.0 - self._fixed.numpy().reshape(-1))
-            if rtol > self.cg_tol and exact_below > 0.0 and np.abs(x.numpy()).max() < exact_below:
-                rtol = self.cg_tol  # the device CG went on to its tight tolerance (device_linear.py ``_cg``)
+            tight = kwargs.get("tight") or self.cg_tol
+            if rtol > tight and exact_below > 0.0 and np.abs(x.numpy()).max() < exact_below:
+                rtol = tight  # the device CG went on to its refinement's tolerance (device_linear.py ``_cg``)
             kept.append(System(bsr_to_scipy(H), b, rtol, self.last_iterations, holder["solver"].frame_index))
         return x
 

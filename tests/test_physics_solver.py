@@ -508,6 +508,47 @@ def test_no_step_estimate_where_the_force_test_holds(monkeypatch, linear_solver)
     assert not any(held and made for held, made in passes)  # but none where the force test held
 
 
+@pytest.mark.parametrize("linear_solver", ["direct", "cg"])
+def test_force_test_solves_each_system_no_tighter_than_it_needs(monkeypatch, linear_solver):
+    """With the force test on, each Newton system is solved no tighter than FORCE_FORCING times the test's bound over
+    |g| (relative residual; convergence_tests.py ``_force_forcing``), its refinement near convergence included
+    (``tight``): the linear model's gradient after the step is then within half the bound. With a step tolerance of
+    1e-12 mm only the force test ends this press: it still ends within the bound, with the normal force within 1e-3 of
+    the frame solved without the floor (FORCE_FORCING = 0: every system to the forcing term and cg_tol), and in fewer
+    linear iterations where the floor acts."""
+    from transtac_sim.physics import convergence_tests
+    from transtac_sim.physics.linear import LinearSolver
+    from transtac_sim.physics.newton import NewtonSteps
+
+    solves, balance = [], []  # (rtol, tight) per Newton system; (|g|, load) per pass
+    solve, force_balanced = LinearSolver.solve, NewtonSteps._force_balanced
+
+    def noting_balance(self, g_norm, load):
+        balance.append((g_norm, load))
+        return force_balanced(self, g_norm, load)
+
+    def noting_solve(self, H, rhs, definite=False, rtol=None, exact_below=0.0, guess=None, tight=None):
+        solves.append((rtol, tight, balance[-1], self.cg_tol))
+        return solve(self, H, rhs, definite, rtol, exact_below, guess, tight)
+
+    monkeypatch.setattr(NewtonSteps, "_force_balanced", noting_balance)
+    monkeypatch.setattr(LinearSolver, "solve", noting_solve)
+    settings = SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-12, max_newton_iterations=30,
+                              newton_force_rtol=1e-3)
+    frame = _press_sphere(settings)[1]
+    floored = [(rtol, tight, max(cg_tol, 0.5 * 1e-3 * load / g)) for rtol, tight, (g, load), cg_tol in solves]
+    assert frame.record.converged and frame.record.residual <= 1e-3 * abs(frame.forces_n[0, 2])
+    for rtol, tight, expected in floored:
+        assert tight == pytest.approx(expected, rel=1e-12) and rtol >= tight
+    assert sum(tight > 1.01e-4 for _, tight, _ in floored) >= 2  # the floor acts on the last systems
+    monkeypatch.setattr(convergence_tests, "FORCE_FORCING", 0.0)
+    solves.clear()
+    unfloored = _press_sphere(settings)[1]
+    assert all(tight == cg_tol for _, tight, _, cg_tol in solves)
+    np.testing.assert_allclose(frame.forces_n[0, 2], unfloored.forces_n[0, 2], rtol=1e-3)
+    assert frame.record.linear_iterations < unfloored.record.linear_iterations
+
+
 def test_step_ended_out_of_equilibrium_is_halved_not_kept(monkeypatch):
     """A (sub)step that Newton reports as converged with |gradient| above ``max_residual_n`` is not kept (solver.py): it
     is solved again in halves. Here the first step's result is pushed 0.05 mm off its equilibrium at one free node

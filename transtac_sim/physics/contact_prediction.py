@@ -137,13 +137,13 @@ class ContactPrediction:
                         values={"ind": ind, "pred": work.pred, "depth": PREDICT_DEPTH_MM})
         return extremes(work.pred.stiffness)[1] > 0.0
 
-    def _predict_contact(self, ind, H, rhs: wp.array, du: wp.array, rtol: float,
-                         exact_below: float) -> tuple[wp.array, float, float] | None:
+    def _predict_contact(self, ind, H, rhs: wp.array, du: wp.array, rtol: float, exact_below: float,
+                         tight: float | None = None) -> tuple[wp.array, float, float] | None:
         """The Newton step solved again with the contact of the points that ``du`` carries into an indenter (see the
         module docstring): (the new step d, d . rhs, max |d|), or None where no point is predicted to touch, or the
         system (``H``, the last Hessian solved, changed in place; ``rhs`` = -grad E on the free components) is then not
-        found positive definite, or d is not a finite descent direction of E. ``rtol`` and ``exact_below`` as in
-        ``LinearSolver.solve``. The linear solver keeps the new system for its step estimate (``solve_last``)."""
+        found positive definite, or d is not a finite descent direction of E. ``rtol``, ``exact_below`` and ``tight``
+        as in ``LinearSolver.solve``. The linear solver keeps the new system for its step estimate (``solve_last``)."""
         if not self._predicted_points(ind, du):
             return None
         work = self._prediction
@@ -155,7 +155,8 @@ class ContactPrediction:
                               {"du": work.side_trial, "v": self._side_test}, values)
         self._add_part(H, "predicted", part)
         self.stats["predicted_contacts"] += 1
-        step = self._linear.solve(H, work.rhs, definite=True, rtol=rtol, exact_below=exact_below, guess=du)
+        step = self._linear.solve(H, work.rhs, definite=True, rtol=rtol, exact_below=exact_below, guess=du,
+                                  tight=tight)
         if step is None:
             return None
         step_dot_rhs, step_max, finite = step_summary(step, rhs)

@@ -220,9 +220,10 @@ class DeviceSolves:
                 **{f"coarse_{k}_s": round(v, 3) for k, v in coarse.seconds.items()}}
 
     def _cg(self, A: LinearOperator, M: BlockJacobi, b: wp.array, x: wp.array, rtol: float, maxiter: int,
-            exact_below: float, refine_above: float = 0.0) -> tuple[CgResult, int]:
-        """CG on A x = (I - P) b (P: the fixed components) from x = 0, to ``rtol``, then on from there to ``cg_tol``
-        where ``refine_above`` <= max |x| < ``exact_below`` (mm): (the last solve's result, iterations of both). The
+            exact_below: float, refine_above: float = 0.0, tight: float | None = None) -> tuple[CgResult, int]:
+        """CG on A x = (I - P) b (P: the fixed components) from x = 0, to ``rtol``, then on from there to ``tight``
+        (default ``cg_tol``) where ``refine_above`` <= max |x| < ``exact_below`` (mm): (the last solve's result,
+        iterations of both). The
         CG's graph takes b and sets x = 0 itself (definite_cg.py ``fixed``; b is the caller's kept array). Not converged
         also where A is found not to be positive definite (definite_cg.py; ``not_definite`` counts those; a NaN stops it
         the same way)."""
@@ -231,8 +232,9 @@ class DeviceSolves:
         result = definite_cg(A, b, x, rtol, maxiter, M, workspace=work.cg, coarse=coarse, fixed=self._fixed,
                              from_zero=True)
         total = result.iterations
-        if result.converged and rtol > self.cg_tol and refine_above <= result.x_max < exact_below:
-            result = definite_cg(A, b, x, self.cg_tol, self.cg_maxiter, M, workspace=work.cg, coarse=coarse,
+        tight = tight or self.cg_tol
+        if result.converged and rtol > tight and refine_above <= result.x_max < exact_below:
+            result = definite_cg(A, b, x, tight, self.cg_maxiter, M, workspace=work.cg, coarse=coarse,
                                  fixed=self._fixed)
             total += result.iterations
         self.not_definite += result.not_definite
@@ -263,9 +265,10 @@ class DeviceSolves:
         return solutions, offset // row_bytes
 
     def _solve_cg(self, H: BsrMatrix, rhs: wp.array, rtol: float, exact_below: float,
-                  coarse_from_this: bool = True, single_precision: bool = True) -> wp.array | None:
-        """CG on the device (``_cg``) in at most ``cg_maxiter`` iterations; None if it did not converge (rhs is
-        left as it was; H is projected in place, and projecting it again changes nothing). With
+                  coarse_from_this: bool = True, single_precision: bool = True,
+                  tight: float | None = None) -> wp.array | None:
+        """CG on the device (``_cg``; ``tight`` as there) in at most ``cg_maxiter`` iterations; None if it did not
+        converge (rhs is left as it was; H is projected in place, and projecting it again changes nothing). With
         ``coarse_from_this``, the first system of a load step that converges makes the coarse inverse (coarse_space.py)
         for the systems after it. ``single_precision``: the product reads H rounded to float32 (else H itself)."""
         key = (H.offsets.ptr, H.columns.ptr, H.row_counts.ptr if H.row_counts else 0, H.nrow)
@@ -288,7 +291,7 @@ class DeviceSolves:
         A = block_row_operator(H, single_precision=True, rounded=work.rounded, round_now=False) if single_precision \
             else block_row_operator(H)
         M = BlockJacobi(H, inverse=work.inverse, invert_now=False)
-        result, self.last_iterations = self._cg(A, M, rhs, work.x, rtol, self.cg_maxiter, exact_below)
+        result, self.last_iterations = self._cg(A, M, rhs, work.x, rtol, self.cg_maxiter, exact_below, tight=tight)
         if not result.converged:
             return None
         self._converged_iterations = self.last_iterations

@@ -89,7 +89,8 @@ class LinearSolver(DeviceSolves):
         self._steps_since_coarse += 1
 
     def solve(self, H: BsrMatrix, rhs: wp.array, definite: bool = False,
-              rtol: float | None = None, exact_below: float = 0.0, guess: wp.array | None = None) -> wp.array | None:
+              rtol: float | None = None, exact_below: float = 0.0, guess: wp.array | None = None,
+              tight: float | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device; on the CG path one of device_linear.SOLUTIONS kept arrays,
         overwritten by the SOLUTIONS-th solution returned after it). ``H`` is changed: its fixed rows and columns are
         projected out in place (the caller assembles it anew for each system, assembly.py). With
@@ -97,28 +98,32 @@ class LinearSolver(DeviceSolves):
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
         early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
-        on the direct path a new factorisation solves exactly, and ``rtol`` below ``cg_tol`` is raised to it.
+        ``tight`` (at least ``cg_tol``, its default): the tolerance continued to there, where the caller needs no more
+        (newton.py ``_force_forcing``). On the direct path a new factorisation solves exactly, and ``rtol`` below
+        ``cg_tol`` is raised to it.
         ``guess`` (vec3d per node): where the direct path's PCG starts (Newton's step estimate for the same right-hand
         side; the device CG starts from 0). Without ``definite``, a system the device CG refuses as not positive
         definite with the float32 product is solved with the float64 one, and one it does not solve is shifted
         (``_solve_shifted``; device_linear.py)."""
         self.forget()
         self.last_shift = 0.0
+        tight = max(tight or 0.0, self.cg_tol)
         if self.method == "direct":
-            return self._solve_direct(H, rhs, definite, rtol or self.cg_tol, exact_below, guess)
+            return self._solve_direct(H, rhs, definite, rtol or self.cg_tol, exact_below, guess, tight)
         refused = self.not_definite
-        x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below)
+        x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below, tight=tight)
         if x is not None or definite:
             return x
         if self.not_definite > refused:  # the float32 product found it not positive definite: try the float64 one
-            x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below, single_precision=False)
+            x = self._solve_cg(H, rhs, rtol or self.cg_tol, exact_below, single_precision=False, tight=tight)
             if x is not None:
                 self.float64_solves += 1
                 return x
         return self._solve_shifted(H, rhs, rtol or self.cg_tol)
 
     def _solve_direct(self, H: BsrMatrix, rhs: wp.array, definite: bool = False, rtol: float = 0.0,
-                      exact_below: float = 0.0, guess: wp.array | None = None) -> wp.array | None:
+                      exact_below: float = 0.0, guess: wp.array | None = None,
+                      tight: float | None = None) -> wp.array | None:
         """The host path. Its BLAS runs on one thread: with their default thread pools, three OpenBLAS copies (numpy's,
         scipy's, CHOLMOD's) spin-wait against each other and the next Warp kernel on few cores; on the 2-core CPU
         (tiny press fixture, scripts/fem_phase_profile.py) the kept-factorisation solves took 131 ms per call
@@ -136,7 +141,7 @@ class LinearSolver(DeviceSolves):
             self._factor_threads = min(lib["num_threads"] for lib in self._blas.select(user_api="blas").info())
         with self._blas.limit(limits=1, user_api="blas"):
             x_free = self._solve_free(A, b, definite, rtol, exact_below,
-                                      None if guess is None else guess.numpy().reshape(-1)[self._free])
+                                      None if guess is None else guess.numpy().reshape(-1)[self._free], tight)
         if x_free is None:
             return None
         self._last_free = A
@@ -165,12 +170,14 @@ class LinearSolver(DeviceSolves):
         return sp.csc_matrix((data, indices, indptr), shape=(len(self._free), len(self._free)))
 
     def _solve_free(self, A: sp.csc_matrix, b: np.ndarray, definite: bool = False, rtol: float = 0.0,
-                    exact_below: float = 0.0, x0: np.ndarray | None = None) -> np.ndarray | None:
-        """The free dofs' solution: PCG with the kept factorisation from ``x0`` to ``rtol`` (on to ``cg_tol`` where
-        it is below ``exact_below`` mm), else a new factorisation's exact solve (None: not positive definite, with
-        ``definite``)."""
+                    exact_below: float = 0.0, x0: np.ndarray | None = None,
+                    tight: float | None = None) -> np.ndarray | None:
+        """The free dofs' solution: PCG with the kept factorisation from ``x0`` to ``rtol`` (on to ``tight``, default
+        ``cg_tol``, where it is below ``exact_below`` mm), else a new factorisation's exact solve (None: not positive
+        definite, with ``definite``)."""
+        tight = tight or self.cg_tol
         if self._lu is not None and self._lu.shape == A.shape:
-            x, iterations = self._kept_pcg(A, b, max(rtol, self.cg_tol), self.cg_tol, exact_below, x0)
+            x, iterations = self._kept_pcg(A, b, max(rtol, tight), tight, exact_below, x0)
             if x is not None:
                 self.last_iterations = iterations
                 return x

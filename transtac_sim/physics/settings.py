@@ -64,11 +64,12 @@ class SolverSettings:
     # (solver.py): converged frames end at 1e-7 to 1e-3 N, and one train_random frame had been written with 1.58e3 N
     # (BENCHMARKS.md ``fem_float64_fallback_gpu``). Newton's step below newton_tol_mm shows convergence only at
     # |gradient| up to this: near elements flattened towards det F = 0 the barrier makes that step tiny at any force
-    # (newton.py ``_short_step_converges``, BENCHMARKS.md ``fem_short_step_gpu``)
+    # (convergence_tests.py ``_short_step_converges``, BENCHMARKS.md ``fem_short_step_gpu``)
     max_residual_n: float = 1.0
     # also converged where |gradient| (N, free dofs) is at most this fraction of the normal load the gel passes to its
     # support (at equilibrium the indenters' normal force) and friction's lag is settled, whatever the step's length
-    # (newton.py ``_force_balanced``); None or 0: the step-length test alone, which solves to newton_tol_mm in every
+    # (convergence_tests.py ``_force_balanced``; Newton's systems are then solved no tighter than this test needs,
+    # ``_force_forcing``); None or 0: the step-length test alone, which solves to newton_tol_mm in every
     # direction (the force test leaves soft directions less converged: uniform compression at nu = 0.49 ends 1.5e-4 mm
     # off the exact displacement with 3e-3, against 1.2e-9 mm with the step-length test; tests/test_physics_solver.py
     # ``test_force_test_leaves_soft_directions_less_converged``).
