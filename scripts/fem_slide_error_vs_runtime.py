@@ -14,8 +14,9 @@ does, once per setting EDGE/LAGS[/SPLIT[/RTOL]]:
 - SPLIT (default 1): every trajectory segment's frames times SPLIT, each frame then solved in SPLIT load steps on the
   same mesh. Friction is path dependent, so finer load steps are a refinement of their own. Friction's smoothing
   (``friction_slip_mm``) applies to each load step's slip, so a split also loosens it against the frame's motion;
-- RTOL (default: the scene's): ``[physics] newton_force_rtol``, Newton's force test (newton.py ``_force_balanced``:
-  also converged where |gradient| is at most RTOL times the normal load on the gel's support); 0 turns it off.
+- RTOL (default: the scene's): ``[physics] newton_force_rtol``, Newton's force test (convergence_tests.py
+  ``_force_balanced``: also converged where |gradient| is at most RTOL times the normal load on the gel's support); 0
+  turns it off.
 
 Everything else is as in the scene. The markers are the scene's own (each mesh embeds them anew), so every setting's
 marker centres compare with the reference's (a finer setting) frame by frame. Per setting:

@@ -94,7 +94,8 @@ def _trace_newton() -> None:
             else:
                 counts["after_lag"] += 1
         print(f"    Newton system, {last.get('which')} Hessian: {outcome}{step}, |g| {np.linalg.norm(rhs.numpy()):.2e} N, "
-              f"{self.last_iterations} linear iterations, rtol {kwargs.get('rtol', 0.0):.1e}", flush=True)
+              f"{self.last_iterations} linear iterations, rtol {kwargs.get('rtol', 0.0):.1e}, refined to "
+              f"{kwargs.get('tight') or self.cg_tol:.1e}", flush=True)
         return du
 
     move_lag, raise_stiffness = QuasiStaticSolver._move_lag, QuasiStaticSolver._raise_stiffness

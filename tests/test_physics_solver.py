@@ -432,11 +432,11 @@ def test_failed_step_is_halved_from_the_last_converged_sub_step():
 @pytest.mark.parametrize("linear_solver", ["direct", "cg"])
 def test_short_newton_step_at_a_large_gradient_is_not_convergence(linear_solver):
     """A Newton step below ``newton_tol_mm`` shows convergence only where |gradient| is at most ``max_residual_n``
-    (newton.py ``_short_step_converges``; on train_random such steps were as short as 3.5e-9 mm at 1.27e4 N, next to
-    flattened elements, BENCHMARKS.md ``fem_short_step_gpu``). Here no barrier acts: a loose step tolerance (0.01 mm,
-    which alone stops this press after 2 iterations at 0.027 N) stands in for it, with a limit of 1e-4 N: Newton goes
-    on in the same step to the frame of the default tolerance (normal force within 1e-6 relative, residual below
-    1e-7 N) instead of ending out of equilibrium, being halved and failing."""
+    (convergence_tests.py ``_short_step_converges``; on train_random such steps were as short as 3.5e-9 mm at 1.27e4 N,
+    next to flattened elements, BENCHMARKS.md ``fem_short_step_gpu``). Here no barrier acts: a loose step tolerance
+    (0.01 mm, which alone stops this press after 2 iterations at 0.027 N) stands in for it, with a limit of 1e-4 N:
+    Newton goes on in the same step to the frame of the default tolerance (normal force within 1e-6 relative, residual
+    below 1e-7 N) instead of ending out of equilibrium, being halved and failing."""
     tight = _press_sphere(SolverSettings(linear_solver=linear_solver))[1]
     loose = _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-2))[1]
     assert loose.record.residual > 1e-2  # the step-length test alone stops early
@@ -448,13 +448,13 @@ def test_short_newton_step_at_a_large_gradient_is_not_convergence(linear_solver)
 
 @pytest.mark.parametrize("linear_solver", ["direct", "cg"])
 def test_force_test_ends_newton_once_the_force_left_is_small(linear_solver):
-    """With ``newton_force_rtol`` Newton also converges where |gradient| is at most that fraction of the normal load on
-    the gel's support (newton.py ``_force_balanced``). With a step tolerance of 1e-12 mm (which quadratic convergence
-    reaches here in 8-9 iterations), rtol 1e-3 ends this press earlier (6-7), with |gradient| at most 1e-3 of the normal
-    force and that force within 1e-3 of the tight solution's. On a slide with friction 0.5 (friction's lag settled
-    before the force test may end Newton) the three frames take fewer iterations (30 instead of 33), each with
-    |gradient| at most about 1e-3 of the normal force and its force vector within 3e-3 of the normal force of the
-    default's (2.2e-3 measured: friction's lag takes another path)."""
+    """With ``newton_force_rtol`` Newton also converges where |gradient| is at most that fraction of the normal load
+    on the gel's support (convergence_tests.py ``_force_balanced``). With a step tolerance of 1e-12 mm (which
+    quadratic convergence reaches here in 8-9 iterations), rtol 1e-3 ends this press earlier (6-7), with |gradient|
+    at most 1e-3 of the normal force and that force within 1e-3 of the tight solution's. On a slide with friction 0.5
+    (friction's lag settled before the force test may end Newton) the three frames take fewer iterations (30 instead
+    of 33), each with |gradient| at most about 1e-3 of the normal force and its force vector within 3e-3 of the
+    normal force of the default's (2.2e-3 measured: friction's lag takes another path)."""
     def press(**fields):
         return _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-12, max_newton_iterations=30,
                                             **fields))[1]
@@ -510,12 +510,12 @@ def test_no_step_estimate_where_the_force_test_holds(monkeypatch, linear_solver)
 
 @pytest.mark.parametrize("linear_solver", ["direct", "cg"])
 def test_force_test_solves_each_system_no_tighter_than_it_needs(monkeypatch, linear_solver):
-    """With the force test on, each Newton system is solved no tighter than FORCE_FORCING times the test's bound over
-    |g| (relative residual; convergence_tests.py ``_force_forcing``), its refinement near convergence included
-    (``tight``): the linear model's gradient after the step is then within half the bound. With a step tolerance of
-    1e-12 mm only the force test ends this press: it still ends within the bound, with the normal force within 1e-3 of
-    the frame solved without the floor (FORCE_FORCING = 0: every system to the forcing term and cg_tol), and in fewer
-    linear iterations where the floor acts."""
+    """With the force test on, Newton asks the linear solver for each system's tolerances no tighter than
+    FORCE_FORCING times the test's bound over |g| (relative residual; convergence_tests.py ``_force_forcing``):
+    ``rtol`` and the refinement's ``tight`` (which the solver honours: test_physics_sparse_product.py). With a step
+    tolerance of 1e-12 mm the step-length test cannot end this press: it ends within the force test's bound, with
+    the normal force within 1e-3 of the frame solved without the floor (FORCE_FORCING = 0: every system asked for
+    the forcing term and cg_tol), and in fewer linear iterations."""
     from transtac_sim.physics import convergence_tests
     from transtac_sim.physics.linear import LinearSolver
     from transtac_sim.physics.newton import NewtonSteps
@@ -547,6 +547,37 @@ def test_force_test_solves_each_system_no_tighter_than_it_needs(monkeypatch, lin
     assert all(tight == cg_tol for _, tight, _, cg_tol in solves)
     np.testing.assert_allclose(frame.forces_n[0, 2], unfloored.forces_n[0, 2], rtol=1e-3)
     assert frame.record.linear_iterations < unfloored.record.linear_iterations
+
+
+@pytest.mark.parametrize("linear_solver", ["direct", "cg"])
+def test_a_short_step_solved_loosely_does_not_end_newton(monkeypatch, linear_solver):
+    """A Newton step below ``newton_tol_mm`` ends Newton by its length only where it was solved to cg_tol: one
+    solved to the force test's looser floor (``_force_forcing``) is taken and Newton goes on, here to the force
+    test. With a step tolerance of 0.01 mm and no step estimates (which would end this press at 0.027 N, above the
+    force test's bound of 2.9e-4 N), the last steps are that short: each is followed by another pass, and the frame
+    ends within the bound."""
+    from transtac_sim.physics.linear import LinearSolver
+    from transtac_sim.physics.newton import NewtonSteps
+
+    events = []  # ("pass",) per Newton pass, ("solve", tight, max |du|) per Newton system
+    solve, force_balanced = LinearSolver.solve, NewtonSteps._force_balanced
+
+    def noting_pass(self, g_norm, load):
+        events.append(("pass",))
+        return force_balanced(self, g_norm, load)
+
+    def noting_solve(self, H, rhs, definite=False, rtol=None, exact_below=0.0, guess=None, tight=None):
+        du = solve(self, H, rhs, definite, rtol, exact_below, guess, tight)
+        events.append(("solve", tight, float(np.abs(du.numpy()).max()) if du is not None else np.inf))
+        return du
+
+    monkeypatch.setattr(NewtonSteps, "_force_balanced", noting_pass)
+    monkeypatch.setattr(LinearSolver, "solve", noting_solve)
+    monkeypatch.setattr(LinearSolver, "solve_last", lambda self, *args, **kwargs: None)
+    frame = _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-2, newton_force_rtol=1e-3))[1]
+    loose_short = [k for k, e in enumerate(events) if e[0] == "solve" and e[2] < 1e-2 and e[1] > 1.0001e-4]
+    assert loose_short and all(("pass",) in events[k + 1:] for k in loose_short)
+    assert frame.record.converged and frame.record.residual <= 1e-3 * abs(frame.forces_n[0, 2])
 
 
 def test_step_ended_out_of_equilibrium_is_halved_not_kept(monkeypatch):

@@ -295,6 +295,52 @@ def test_device_solutions_come_with_their_summary(device):
     assert host.known_summary(host.solve(solver._hessian(ind, 1.0, True), rhs)) is None
 
 
+@pytest.mark.parametrize("method", ["cg", "direct"])
+def test_a_solve_is_refined_to_the_caller_s_tight_tolerance(monkeypatch, method):
+    """``LinearSolver.solve(..., tight=T)``: a solution below ``exact_below`` is refined to T instead of cg_tol, on
+    both paths (Newton's floor where the force test is on, convergence_tests.py ``_force_forcing``): the device CG's
+    second stage, and the direct path's PCG with the factorisation kept from a first system, are asked for T, and
+    the solution's relative residual is within it; by default they are asked for cg_tol."""
+    solver, ind = _pressed_solver()
+    asked = []
+    if method == "cg":
+        cg = device_linear.definite_cg
+
+        def noting(A, b, x, rtol, *args, **kwargs):
+            asked.append(rtol)
+            return cg(A, b, x, rtol, *args, **kwargs)
+
+        monkeypatch.setattr(device_linear, "definite_cg", noting)
+    else:
+        pcg_ = linear_module.pcg
+
+        def noting(A, b, M, rtol, *args, **kwargs):
+            asked.append(rtol)
+            return pcg_(A, b, M, rtol, *args, **kwargs)
+
+        monkeypatch.setattr(linear_module, "pcg", noting)
+    g = solver._gradient(ind).numpy().copy()  # (the kept gradient: the next call overwrites it)
+    g[solver._fixed_nodes] = 0.0
+    rhs = wp.array(-g, dtype=wp.vec3d)
+
+    def solved(tight):
+        linear = LinearSolver(method, solver._fixed_nodes, solver.device)
+        if method == "direct":  # factorised here; the next system (Gauss-Newton's) is solved by PCG with it
+            linear.solve(solver._hessian(ind, 1.0, True), rhs)
+        asked.clear()
+        H = solver._hessian(ind, 1.0 if method == "cg" else 0.0, True)
+        x = linear.solve(H, rhs, rtol=0.3, exact_below=1e9, tight=tight)
+        A = bsr_to_scipy(H).tocsr()[linear._free][:, linear._free]
+        b = -g.reshape(-1)[linear._free]
+        return list(asked), np.linalg.norm(b - A @ x.numpy().reshape(-1)[linear._free]) / np.linalg.norm(b), linear
+
+    asked_loose, residual, linear = solved(0.05)
+    assert asked_loose == [0.3, 0.05] and residual <= 0.05
+    asked_default, residual, _ = solved(None)
+    # (1.01: the float32 product's round-off)
+    assert asked_default == [0.3, linear.cg_tol] and residual <= 1.01 * linear.cg_tol
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_device_step_estimate_solves_to_its_tolerance_within_its_cap(monkeypatch, device):
     """The device's step estimate (``solve_last``, device_linear.py): the last converged system solved for a new

@@ -7,9 +7,10 @@ where the matrix is found not to be positive definite (definite_cg.py; ``solve(.
 returns None), its matrix-vector product one warp per block row on the matrix rounded to float32 (sparse_product.py:
 half the bytes of the product that is most of CG's time); the fixed rows/columns are
 projected out in place (``_project_fixed_blocks``, on the blocks it changes). Its relative tolerance is Newton's
-forcing term (inexact Newton: loose far from the solution, tight near it). The tight tolerance ``cg_tol`` (of both
-paths) is a relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the Newton step is
-below newton_tol_mm, and on
+forcing term (inexact Newton: loose far from the solution, tight near it, but no tighter than the force test needs
+where a scene has it: ``LinearSolver.solve``'s ``tight``, convergence_tests.py ``_force_forcing``). The tight tolerance
+``cg_tol`` (of both paths) is a relative residual of 1e-4, not 1e-8: near convergence it only has to tell whether the
+Newton step is below newton_tol_mm, and on
 press_slide (H100, BENCHMARKS.md ``fem_cg_tolerance_gpu``) 1e-4 moved the markers by at most 2.1e-7 mm and the
 forces by nothing in the printed digits, with 39 % fewer CG iterations and 1.3x faster frames. The price: at 1e-4
 a CG step can be 10-50 % shorter than the exact one (scripts/bench_linear_solvers.py, ``linear_solvers_gpu``), so

@@ -3,7 +3,8 @@
 - ``"direct"``: a sparse Cholesky (CHOLMOD) or LU (SuperLU) factorisation on the host, on the free
   rows/columns only (host_factorisation.py). Fastest on the CPU for the mesh sizes used here. The factorisation
   is kept: later Newton steps are solved by conjugate gradients preconditioned with it, to Newton's forcing term
-  (inexact Newton, as on the device: loose far from the solution, ``cg_tol`` near it), from the step estimate where
+  (inexact Newton, as on the device: loose far from the solution, ``cg_tol`` near it or the caller's ``tight``), from
+  the step estimate where
   Newton has one (``guess``), and the matrix is factorised again only when that does not converge in
   ``reuse_max_iterations`` (or its rate shows by iteration ``PCG_RATE_CHECK`` that it will not). With the forcing term
   instead of 1e-6 for every system, and Newton's estimate changes (newton.py), the tiny press fixture's frames 0-1 take 4
@@ -96,11 +97,11 @@ class LinearSolver(DeviceSolves):
         projected out in place (the caller assembles it anew for each system, assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
-        the solution, newton.py), continued to ``cg_tol`` where the solution is below ``exact_below`` mm (an
-        early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length);
-        ``tight`` (at least ``cg_tol``, its default): the tolerance continued to there, where the caller needs no more
-        (newton.py ``_force_forcing``). On the direct path a new factorisation solves exactly, and ``rtol`` below
-        ``cg_tol`` is raised to it.
+        the solution, newton.py), continued to ``tight`` where the solution is below ``exact_below`` mm (an
+        early-stopped CG solution is shorter than the exact one, and Newton tests convergence on its length).
+        ``tight``: ``cg_tol`` by default, or a looser tolerance where the caller needs no more (convergence_tests.py
+        ``_force_forcing``); never below ``cg_tol``. On the direct path a new factorisation solves exactly, and
+        ``rtol`` below ``tight`` is raised to it (Newton never passes one).
         ``guess`` (vec3d per node): where the direct path's PCG starts (Newton's step estimate for the same right-hand
         side; the device CG starts from 0). Without ``definite``, a system the device CG refuses as not positive
         definite with the float32 product is solved with the float64 one, and one it does not solve is shifted

@@ -126,7 +126,8 @@ from transtac_sim.physics.warm_start import lifts_off
 #: linear.py) solves each Newton system to a relative residual
 #: of min(FORCING_MAX, |g| / |g_first|), |g_first| the gradient at the (sub)step's first pass: loose while
 #: far from the solution, where an exact Newton step is wasted, and tightening in proportion to |g| (which
-#: keeps Newton's convergence quadratic). scripts/bench_linear_solvers.py: CG iterations against tolerance.
+#: keeps Newton's convergence quadratic), but no tighter than the force test needs where a scene has it
+#: (convergence_tests.py ``_force_forcing``). scripts/bench_linear_solvers.py: CG iterations against tolerance.
 #: 0.01 rather than 0.1 since the device takes the exact Hessian where it is positive definite: on press_slide
 #: frames 1-5 (H100, scripts/fem_phase_profile.py --forcing-max) 82 Newton iterations and 7.6-7.9 s against 103-105
 #: and 9.2-9.3 s with 0.1, the same CG iterations in all.
@@ -141,8 +142,9 @@ FORCING_MAX = 0.01
 STALL_STEPS = 10
 STALL_ALPHA = 1.0 / 16.0
 
-#: a Newton system's CG goes on to the tight tolerance (linear.py ``cg_tol``) where its step is below this many
-#: newton_tol_mm: there the step's length decides the convergence test, and a loosely solved step is shorter
+#: a Newton system's CG goes on to the tight tolerance (linear.py ``cg_tol``; the force test's floor where that is
+#: higher, convergence_tests.py ``_force_forcing``) where its step is below this many newton_tol_mm: there the step's
+#: length decides the convergence test, and a loosely solved step is shorter
 #: (10 took 13 % more Newton iterations on press_slide, BENCHMARKS.md ``fem_slide_iterations_gpu``)
 EXACT_BELOW = 100.0
 
@@ -184,6 +186,8 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
         take_trial = False  # the line search's accepted trial is still to be copied into u (by the next gradient)
+        floored = True  # systems solved no tighter than the force test needs (``_force_forcing``) until a line search
+        # fails on such a step
         while True:
             lag_open = friction and lags < s.friction_lag_moves
             rhs, g_norm, load, lag_change, energy_at_u = self._read_gradient(ind, full_step and lag_open,
@@ -229,7 +233,7 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
             iterations += 1
             energy = energy_here if energy_here is not None else self._energy(self.u, ind)
             # solved no tighter than the force test needs; a step solved looser than cg_tol tests nothing by its length
-            tight = max(self._linear.cg_tol, self._force_forcing(g_norm, load))
+            tight = max(self._linear.cg_tol, self._force_forcing(g_norm, load) if floored else 0.0)
             tested = tight <= self._linear.cg_tol
             rtol = max(min(FORCING_MAX, g_norm / g_first), tight)
             ladder = self._hessian_ladder()
@@ -243,7 +247,7 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
                     continue
                 du_dot_rhs, step_max, finite = self._linear.known_summary(du) or step_summary(du, rhs)
                 slope = -du_dot_rhs  # E'(0) along du: du . g
-                if finite and ((step_max < tol and tested and self._short_step_converges(g_norm)) or slope < 0.0):
+                if finite and ((step_max < tol and self._short_step_converges(g_norm)) or slope < 0.0):
                     break  # at a round-off gradient (e.g. GPU atomics where nothing touches) the slope means nothing
             else:
                 return False, iterations, "Newton direction is not a descent direction", 0.0
@@ -290,6 +294,10 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
                     why = "line search failed" + (" (every step tried made an inverted element, det F <= 0)"
                                                   if inverted else "")
                     return False, iterations, why, 0.0
+                if not tested:  # solved looser than cg_tol, its length shows nothing: the rest of the (sub)step's
+                    # systems to cg_tol
+                    floored = False
+                    continue
                 wp.copy(self.u.dof_values, self._u_try.dof_values)
                 if friction and lags < s.friction_lag_moves and self._move_lag(ind, 0.0):
                     lags, full_step, short_steps = lags + 1, True, 0
