@@ -508,6 +508,33 @@ def test_no_step_estimate_where_the_force_test_holds(monkeypatch, linear_solver)
     assert not any(held and made for held, made in passes)  # but none where the force test held
 
 
+CG_TOL = 1e-4  # LinearSolver's default tight tolerance (both paths)
+
+
+def _newton_events(monkeypatch) -> list[tuple]:
+    """Newton's passes and systems in their order, appended as they happen: ("pass", |g|, load) at each pass's force
+    test, ("solve", rtol, tight, max |du|) after each system the linear solver solves (``rtol`` and ``tight`` as Newton
+    passes them; max |du| inf where the solve returned None)."""
+    from transtac_sim.physics.linear import LinearSolver
+    from transtac_sim.physics.newton import NewtonSteps
+
+    events = []
+    solve, force_balanced = LinearSolver.solve, NewtonSteps._force_balanced
+
+    def noting_pass(self, g_norm, load):
+        events.append(("pass", g_norm, load))
+        return force_balanced(self, g_norm, load)
+
+    def noting_solve(self, H, rhs, definite=False, rtol=None, exact_below=0.0, guess=None, tight=None):
+        du = solve(self, H, rhs, definite, rtol, exact_below, guess, tight)
+        events.append(("solve", rtol, tight, float(np.abs(du.numpy()).max()) if du is not None else np.inf))
+        return du
+
+    monkeypatch.setattr(NewtonSteps, "_force_balanced", noting_pass)
+    monkeypatch.setattr(LinearSolver, "solve", noting_solve)
+    return events
+
+
 @pytest.mark.parametrize("linear_solver", ["direct", "cg"])
 def test_force_test_solves_each_system_no_tighter_than_it_needs(monkeypatch, linear_solver):
     """With the force test on, Newton asks the linear solver for each system's tolerances no tighter than
@@ -517,34 +544,25 @@ def test_force_test_solves_each_system_no_tighter_than_it_needs(monkeypatch, lin
     the normal force within 1e-3 of the frame solved without the floor (FORCE_FORCING = 0: every system asked for
     the forcing term and cg_tol), and in fewer linear iterations."""
     from transtac_sim.physics import convergence_tests
-    from transtac_sim.physics.linear import LinearSolver
-    from transtac_sim.physics.newton import NewtonSteps
 
-    solves, balance = [], []  # (rtol, tight) per Newton system; (|g|, load) per pass
-    solve, force_balanced = LinearSolver.solve, NewtonSteps._force_balanced
-
-    def noting_balance(self, g_norm, load):
-        balance.append((g_norm, load))
-        return force_balanced(self, g_norm, load)
-
-    def noting_solve(self, H, rhs, definite=False, rtol=None, exact_below=0.0, guess=None, tight=None):
-        solves.append((rtol, tight, balance[-1], self.cg_tol))
-        return solve(self, H, rhs, definite, rtol, exact_below, guess, tight)
-
-    monkeypatch.setattr(NewtonSteps, "_force_balanced", noting_balance)
-    monkeypatch.setattr(LinearSolver, "solve", noting_solve)
+    events = _newton_events(monkeypatch)
     settings = SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-12, max_newton_iterations=30,
                               newton_force_rtol=1e-3)
     frame = _press_sphere(settings)[1]
-    floored = [(rtol, tight, max(cg_tol, 0.5 * 1e-3 * load / g)) for rtol, tight, (g, load), cg_tol in solves]
+    floored, bound_over_g = [], None  # (rtol, tight, the floor from its pass's |g| and load) per system
+    for kind, *values in events:
+        if kind == "pass":
+            bound_over_g = 1e-3 * values[1] / values[0]
+        else:
+            floored.append((values[0], values[1], max(CG_TOL, 0.5 * bound_over_g)))
     assert frame.record.converged and frame.record.residual <= 1e-3 * abs(frame.forces_n[0, 2])
     for rtol, tight, expected in floored:
         assert tight == pytest.approx(expected, rel=1e-12) and rtol >= tight
-    assert sum(tight > 1.01e-4 for _, tight, _ in floored) >= 2  # the floor acts on the last systems
+    assert sum(tight > 1.01 * CG_TOL for _, tight, _ in floored) >= 2  # the floor acts on the last systems
     monkeypatch.setattr(convergence_tests, "FORCE_FORCING", 0.0)
-    solves.clear()
+    events.clear()
     unfloored = _press_sphere(settings)[1]
-    assert all(tight == cg_tol for _, tight, _, cg_tol in solves)
+    assert all(e[2] == CG_TOL for e in events if e[0] == "solve")
     np.testing.assert_allclose(frame.forces_n[0, 2], unfloored.forces_n[0, 2], rtol=1e-3)
     assert frame.record.linear_iterations < unfloored.record.linear_iterations
 
@@ -557,26 +575,12 @@ def test_a_short_step_solved_loosely_does_not_end_newton(monkeypatch, linear_sol
     force test's bound of 2.9e-4 N), the last steps are that short: each is followed by another pass, and the frame
     ends within the bound."""
     from transtac_sim.physics.linear import LinearSolver
-    from transtac_sim.physics.newton import NewtonSteps
 
-    events = []  # ("pass",) per Newton pass, ("solve", tight, max |du|) per Newton system
-    solve, force_balanced = LinearSolver.solve, NewtonSteps._force_balanced
-
-    def noting_pass(self, g_norm, load):
-        events.append(("pass",))
-        return force_balanced(self, g_norm, load)
-
-    def noting_solve(self, H, rhs, definite=False, rtol=None, exact_below=0.0, guess=None, tight=None):
-        du = solve(self, H, rhs, definite, rtol, exact_below, guess, tight)
-        events.append(("solve", tight, float(np.abs(du.numpy()).max()) if du is not None else np.inf))
-        return du
-
-    monkeypatch.setattr(NewtonSteps, "_force_balanced", noting_pass)
-    monkeypatch.setattr(LinearSolver, "solve", noting_solve)
+    events = _newton_events(monkeypatch)
     monkeypatch.setattr(LinearSolver, "solve_last", lambda self, *args, **kwargs: None)
     frame = _press_sphere(SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-2, newton_force_rtol=1e-3))[1]
-    loose_short = [k for k, e in enumerate(events) if e[0] == "solve" and e[2] < 1e-2 and e[1] > 1.0001e-4]
-    assert loose_short and all(("pass",) in events[k + 1:] for k in loose_short)
+    loose_short = [k for k, e in enumerate(events) if e[0] == "solve" and e[3] < 1e-2 and e[2] > 1.0001 * CG_TOL]
+    assert loose_short and all(any(e[0] == "pass" for e in events[k + 1:]) for k in loose_short)
     assert frame.record.converged and frame.record.residual <= 1e-3 * abs(frame.forces_n[0, 2])
 
 
@@ -589,28 +593,23 @@ def test_a_failed_line_search_on_a_loosely_solved_step_solves_the_rest_to_cg_tol
     from transtac_sim.physics.linear import LinearSolver
     from transtac_sim.physics.trial_point import TrialPoints
 
-    solves, failed = [], []  # (tight, max |du|) per Newton system; the system whose line search was made to fail
-    solve, try_step = LinearSolver.solve, TrialPoints._try_step
-
-    def noting_solve(self, H, rhs, definite=False, rtol=None, exact_below=0.0, guess=None, tight=None):
-        du = solve(self, H, rhs, definite, rtol, exact_below, guess, tight)
-        solves.append((tight, float(np.abs(du.numpy()).max()) if du is not None else np.inf))
-        return du
+    events, failed = _newton_events(monkeypatch), []  # failed: the count of systems when the line search was failed
+    try_step = TrialPoints._try_step
 
     def failing_once(self, du, alpha, ind):
-        tight, step = solves[-1]
-        if (not failed or failed[0] == len(solves)) and tight > self._linear.cg_tol and step < 1e-2:
+        solves = [e for e in events if e[0] == "solve"]
+        _, _, tight, step = solves[-1]
+        if (not failed or failed[0] == len(solves)) and tight > CG_TOL and step < 1e-2:
             failed[:] = [len(solves)]
             return float("nan"), None
         return try_step(self, du, alpha, ind)
 
-    monkeypatch.setattr(LinearSolver, "solve", noting_solve)
     monkeypatch.setattr(LinearSolver, "solve_last", lambda self, *args, **kwargs: None)
     monkeypatch.setattr(TrialPoints, "_try_step", failing_once)
     frame = _press_sphere(SolverSettings(linear_solver="cg", newton_tol_mm=1e-2, newton_force_rtol=1e-3))[1]
-    cg_tol = 1e-4
-    assert failed and len(solves) > failed[0]  # Newton went on after the failed line search
-    assert all(tight == cg_tol for tight, _ in solves[failed[0]:]) and frame.record.converged
+    later = [e[2] for e in events if e[0] == "solve"][failed[0]:] if failed else []
+    assert later  # Newton went on after the failed line search
+    assert all(tight == CG_TOL for tight in later) and frame.record.converged
 
 
 def test_step_ended_out_of_equilibrium_is_halved_not_kept(monkeypatch):
