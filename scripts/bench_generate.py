@@ -15,8 +15,9 @@ table into BENCHMARKS.md (section ``generate``) with the machine it ran on and t
 ``--summarize DIR`` reads a dataset folder, finished or cut short, and prints what its frames' solver records say
 (physics seconds and Newton iterations per frame, per sequence) and the failures kept for resuming, and how many more
 Newton systems batches of sequences solved in lockstep would take (``lockstep_ratio``: the cost side of a batched
-solver, issue 12), and what friction's lag leaves unbalanced over the contact force (``SolverRecord.friction_lag_residual_n``;
-``--worst N`` lists the N frames where that is largest).
+solver, issue 12), the (sub)steps that failed and were solved again in halves, by why
+(``SolverRecord.failed_steps``), and what friction's lag leaves unbalanced over the contact force
+(``SolverRecord.friction_lag_residual_n``; ``--worst N`` lists the N frames where that is largest).
 
 ``--mesh-only`` builds and caches the gel mesh of each of those sequences (their marker layouts differ) and
 stops: for a benchmark machine without fTetWild, carry the cache folder (``TRANSTAC_SIM_CACHE``) there; its
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import json
 import platform
+import re
 import sys
 import tempfile
 import time
@@ -148,9 +150,19 @@ def solver_summary(root: Path, worst: int = 0) -> str:
         its = [n for seq_its in its_by_sequence for n in seq_its]
         lines.append(f"physics seconds per frame: median {statistics.median(seconds):.2f}, mean "
                      f"{statistics.mean(seconds):.2f}, max {max(seconds):.1f}; Newton iterations per frame: median "
-                     f"{statistics.median(its):g}, max {max(its)}; frames with sub-steps: "
+                     f"{statistics.median(its):g}, max {max(its)}, {sum(its)} in all; frames with sub-steps: "
                      f"{sum(r.get('substeps', 1) > 1 for r in records)}; not converged: "
                      f"{sum(not r['converged'] for r in records)}")
+        failed = [f for r in records for f in r.get("failed_steps", [])]
+        if failed:  # (sub)steps that failed and were halved, by why (SolverRecord.failed_steps)
+            kinds: dict[str, list[int]] = {}
+            for f in failed:
+                kinds.setdefault(why_kind(f["why"]), []).append(f["iterations"])
+            in_frames = sum(bool(r.get("failed_steps")) for r in records)
+            lines.append(f"failed (sub)steps, each solved again in halves: {len(failed)} in {in_frames} frames, "
+                         f"{sum(f['iterations'] for f in failed)} Newton iterations; " + ", ".join(
+                             f"{kind}: {len(n)} ({sum(n)} iterations)"
+                             for kind, n in sorted(kinds.items(), key=lambda x: -sum(x[1]))))
         if residuals:  # a frame reported as converged with a large one was seen (``fem_float64_fallback_gpu``)
             top, seq, frame = max(residuals, key=lambda x: x[0])
             median = statistics.median(x[0] for x in residuals)
@@ -171,6 +183,12 @@ def solver_summary(root: Path, worst: int = 0) -> str:
         lines += [f"- {seq}: {len(rs)} frames, {sum(r['seconds'] for r in rs):.1f} s of physics, Newton iterations "
                   f"{seq_its}" for (seq, rs), seq_its in zip(frames.items(), its_by_sequence, strict=True)]
     return "\n".join(lines)
+
+
+def why_kind(why: str) -> str:
+    """A failed step's reason without its figures: the text before its first colon, parenthesis or number ("Newton
+    stalled", "Newton iteration limit reached", "penetration", ...)."""
+    return re.split(r"[:(]| [0-9]", why, maxsplit=1)[0].strip()
 
 
 def lockstep_ratio(its_by_sequence: list[list[int]], batch: int) -> float:

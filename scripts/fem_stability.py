@@ -6,6 +6,7 @@ frames, the largest penetration and sub-step count of any frame, Newton iteratio
 The full run writes a markdown table into BENCHMARKS.md (section ``fem_stability``; ``fem_stability_gpu`` with a GPU).
 
     .venv/bin/python scripts/fem_stability.py [--quick] [--device cpu|cuda] [--only NAME ...] [--max-newton-iterations N]
+        [--newton-force-rtol R] [--no-progress-steps N] [--linear-solver auto|direct|cg]
 
 ``--quick`` uses a coarser mesh and prints the table without writing BENCHMARKS.md.
 The case definitions and ``run_case`` are shared with tests/test_physics_stability.py (which runs them
@@ -15,6 +16,7 @@ on a smaller, coarser block).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -134,7 +136,8 @@ class CaseResult:
 
 
 def build_solver(case: Case, block: Block, device: str = "cpu", max_newton_iterations: int | None = None,
-                 newton_force_rtol: float | None = None):
+                 newton_force_rtol: float | None = None, no_progress_steps: int | None = None,
+                 linear_solver: str | None = None):
     V, T = block.mesh()
     materials = [ElasticMaterial(case.young_mpa, case.poisson)]
     material_index = None
@@ -149,19 +152,26 @@ def build_solver(case: Case, block: Block, device: str = "cpu", max_newton_itera
     ind = make_indenter(case.shape, block.thickness, case.friction)
     settings = SolverSettings(degree=block.degree, max_newton_iterations=max_newton_iterations,
                               newton_force_rtol=newton_force_rtol)
+    if no_progress_steps is not None:
+        settings = dataclasses.replace(settings, newton_no_progress_steps=no_progress_steps)
+    if linear_solver is not None:
+        settings = dataclasses.replace(settings, linear_solver=linear_solver)
     solver = QuasiStaticSolver(V, T, materials, [ind], settings, device=device, material_index=material_index)
     return solver, V, ind, backing_vertices
 
 
 def run_case(case: Case, block: Block, device: str = "cpu", verbose: bool = False,
-             max_newton_iterations: int | None = None, newton_force_rtol: float | None = None) -> CaseResult:
+             max_newton_iterations: int | None = None, newton_force_rtol: float | None = None,
+             no_progress_steps: int | None = None, linear_solver: str | None = None) -> CaseResult:
     """Run one case (``max_newton_iterations``: replaces the solver's default cap per (sub)step;
-    ``newton_force_rtol``: Newton's force test, as scenes take it, config/scene.py); a
+    ``newton_force_rtol``: Newton's force test, as scenes take it, config/scene.py; ``no_progress_steps``: replaces
+    SolverSettings.newton_no_progress_steps; ``linear_solver``: replaces SolverSettings.linear_solver); a
     SolverDidNotConverge / IndenterStartsInsideGel ends it and is kept in ``error``.
 
     Per frame: converged, iterations, substeps, min_det_f, max_penetration_mm, seconds, finite (no NaN
     in the displacement), fz, fx (N, on the gel), max_u_mm (all vertices), max_u_backing_mm."""
-    solver, V, ind, backing = build_solver(case, block, device, max_newton_iterations, newton_force_rtol)
+    solver, V, ind, backing = build_solver(case, block, device, max_newton_iterations, newton_force_rtol,
+                                           no_progress_steps, linear_solver)
     out = CaseResult(case, dofs=3 * len(solver.nodal_displacement()))
     start, poses = trajectory(case, ind, block.thickness)
     t0 = time.perf_counter()
@@ -258,7 +268,15 @@ def main() -> None:
     parser.add_argument("--newton-force-rtol", type=float, default=None,
                         help="Newton's force test (SolverSettings.newton_force_rtol; scenes take 3e-3) instead of the "
                         "step-length test alone; prints only, BENCHMARKS.md untouched")
+    parser.add_argument("--no-progress-steps", type=int, default=None,
+                        help="SolverSettings.newton_no_progress_steps instead of its default of 30 (0: off); prints "
+                        "only, BENCHMARKS.md untouched")
+    parser.add_argument("--linear-solver", choices=("auto", "direct", "cg"), default=None,
+                        help="SolverSettings.linear_solver instead of its default (cg on the CPU: the device path's "
+                        "solver, deterministic there); prints only, BENCHMARKS.md untouched")
     args = parser.parse_args()
+    if args.no_progress_steps is not None and args.no_progress_steps < 0:
+        parser.error(f"--no-progress-steps {args.no_progress_steps}: expected 0 (off) or more")
     if args.newton_force_rtol is not None and not 0.0 <= args.newton_force_rtol <= 0.1:
         parser.error(f"--newton-force-rtol {args.newton_force_rtol:g}: expected a value within [0, 0.1]")
 
@@ -277,7 +295,8 @@ def main() -> None:
         else:
             print(f"{case.name} ...", flush=True)
             r = run_case(case, block, args.device, verbose=args.verbose,
-                         max_newton_iterations=args.max_newton_iterations, newton_force_rtol=args.newton_force_rtol)
+                         max_newton_iterations=args.max_newton_iterations, newton_force_rtol=args.newton_force_rtol,
+                         no_progress_steps=args.no_progress_steps, linear_solver=args.linear_solver)
             done[case.key()] = (case.name, r)
         results.append(r)
         line = table_row(case.name, r, block.thickness, same_as)
@@ -285,7 +304,8 @@ def main() -> None:
         lines.append(line)
     total = time.perf_counter() - t_all
     print(f"total {total:.0f} s", flush=True)
-    if args.quick or args.only or args.max_newton_iterations is not None or args.newton_force_rtol is not None:
+    if (args.quick or args.only or args.max_newton_iterations is not None or args.newton_force_rtol is not None
+            or args.no_progress_steps is not None or args.linear_solver is not None):
         return
     head = (
         f"Machine: {machine_name(args.device)}. Command: `.venv/bin/python scripts/fem_stability.py"

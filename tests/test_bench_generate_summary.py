@@ -57,3 +57,25 @@ def test_summary_gives_the_residuals_and_where_the_largest_is(tmp_path):
                 "iterations": 3, "seconds": 0.5, "converged": True, "residual": r}}))
     text = solver_summary(tmp_path)
     assert "residual (labels.json solver residual, N): median 2.5e-06, max 3.30e+01 (seq_00000 frame 1)" in text, text
+
+
+def test_summary_counts_the_failed_steps_by_why(tmp_path):
+    """The (sub)steps that failed and were solved again in halves (labels.json ``solver.failed_steps``), counted by
+    their reason without its figures, with their Newton iterations; the total of Newton iterations."""
+    failed = [[{"from": 0.0, "to": 1.0, "iterations": 120, "why": "Newton iteration limit reached (its steps below "
+                "newton_tol_mm at |gradient| 894 N above max_residual_n = 1 N, smallest det F 1.86e-06)"},
+               {"from": 0.0, "to": 0.5, "iterations": 30, "why": "Newton made no progress: 30 steps since the lowest "
+                "|gradient| of the (sub)step (2.57 N)"}],
+              [], [{"from": 0.5, "to": 1.0, "iterations": 12, "why": "Newton made no progress: 30 steps since the "
+                    "lowest |gradient| of the (sub)step (5.8 N)"},
+                   {"from": 0.5, "to": 0.75, "iterations": 3, "why": "penetration 0.0213 mm above the tolerance"}]]
+    for frame, steps in enumerate(failed):
+        path = tmp_path / "sequences" / "seq_00000" / f"{frame:06d}" / "labels.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"sequence": "seq_00000", "frame": frame, "solver": {
+            "iterations": 200, "seconds": 0.5, "converged": True, "substeps": 1 + len(steps), "failed_steps": steps}}))
+    text = solver_summary(tmp_path)
+    assert "Newton iterations per frame: median 200, max 200, 600 in all" in text, text
+    assert ("failed (sub)steps, each solved again in halves: 4 in 2 frames, 165 Newton iterations; Newton iteration "
+            "limit reached: 1 (120 iterations), Newton made no progress: 2 (42 iterations), penetration: 1 (3 "
+            "iterations)") in text, text

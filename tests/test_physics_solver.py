@@ -13,7 +13,7 @@ from transtac_sim.physics import (
     RigidIndenter,
     SolverDidNotConverge,
     SolverSettings,
-    newton,
+    convergence_tests,
     warm_start,
 )
 from transtac_sim.physics.box_mesh import box_tet_mesh, gel_block
@@ -384,27 +384,103 @@ def test_carried_warm_start_shifts_an_affine_field_exactly():
     np.testing.assert_allclose(carried, expected, rtol=0.0, atol=1e-12)
 
 
-def test_stalled_step_is_halved_but_the_smallest_sub_step_may_not_stall(monkeypatch):
-    """newton.py gives a (sub)step up after ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less, but
-    only where it can still be halved. With every step counted as short (STALL_ALPHA 1) and one enough to stall, the
-    whole press and its half stall and the frame is solved in quarter steps (the smallest of 2 halvings), to the state
-    of the press in one step."""
+def _press_in_sub_steps(settings: SolverSettings):
+    """The roller block pressed 0.1 mm by a plate in one frame, with at most 2 halvings of its step."""
     V, T, fixed = _roller_block()
+    solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()],
+                               dataclasses.replace(settings, max_substep_halvings=2), fixed=fixed)
+    solver.start([_lift(2.0 + 1.0 + 1e-3)])
+    return solver.solve_frame([_lift(2.0 + 1.0 - 0.1)])
 
-    def press():
-        solver = QuasiStaticSolver(V, T, ElasticMaterial(0.5, 0.45), [_plate()],
-                                   SolverSettings(max_substep_halvings=2), fixed=fixed)
-        solver.start([_lift(2.0 + 1.0 + 1e-3)])
-        return solver.solve_frame([_lift(2.0 + 1.0 - 0.1)])
 
-    whole = press()
-    assert whole.record.substeps == 1 and whole.record.iterations < newton.STALL_STEPS
-    monkeypatch.setattr(newton, "STALL_ALPHA", 1.0)
-    assert press().record.substeps == 1  # short steps, but fewer in a row than STALL_STEPS
-    monkeypatch.setattr(newton, "STALL_STEPS", 1)
-    quarters = press()
+def test_stalled_step_is_halved_but_the_smallest_sub_step_may_not_stall(monkeypatch):
+    """Newton gives a (sub)step up after ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less
+    (convergence_tests.py ``StallWatch``), but only where it can still be halved. With every step counted as short
+    (STALL_ALPHA 1) and one enough to stall, the whole press and its half stall and the frame is solved in quarter steps
+    (the smallest of 2 halvings), to the state of the press in one step; the record lists the two failed steps and
+    why."""
+    whole = _press_in_sub_steps(SolverSettings())
+    assert whole.record.substeps == 1 and whole.record.iterations < convergence_tests.STALL_STEPS
+    assert whole.record.failed_steps == ()
+    monkeypatch.setattr(convergence_tests, "STALL_ALPHA", 1.0)
+    # short steps, but fewer in a row than STALL_STEPS
+    assert _press_in_sub_steps(SolverSettings()).record.substeps == 1
+    monkeypatch.setattr(convergence_tests, "STALL_STEPS", 1)
+    quarters = _press_in_sub_steps(SolverSettings())
     assert quarters.record.converged and quarters.record.substeps == 4
+    assert [(f.start, f.end, f.iterations) for f in quarters.record.failed_steps] == [(0.0, 1.0, 1), (0.0, 0.5, 1)]
+    assert all(f.why.startswith("Newton stalled: 1 steps in a row") for f in quarters.record.failed_steps)
     np.testing.assert_allclose(quarters.displacement_mm, whole.displacement_mm, rtol=0, atol=1e-6)
+
+
+def test_a_step_without_progress_is_halved_unless_the_setting_is_0():
+    """Newton gives a (sub)step that can still be halved up once it has taken ``newton_no_progress_steps`` steps since
+    the lowest |g| of the (sub)step. With 1, the step after the first pass is already one too many: the whole press and
+    its half are given up and the frame is solved in quarter steps (the smallest may not be given up) to the state of
+    the press in one step; with 0 (off) it is solved in one step, as by default. A negative count is refused."""
+    with pytest.raises(ValueError, match="newton_no_progress_steps must be >= 0"):
+        SolverSettings(newton_no_progress_steps=-1)
+    whole = _press_in_sub_steps(SolverSettings())
+    assert whole.record.substeps == 1 and whole.record.iterations > 1
+    assert _press_in_sub_steps(SolverSettings(newton_no_progress_steps=0)).record.substeps == 1
+    quarters = _press_in_sub_steps(SolverSettings(newton_no_progress_steps=1))
+    assert quarters.record.converged and quarters.record.substeps == 4
+    assert [(f.start, f.end) for f in quarters.record.failed_steps] == [(0.0, 1.0), (0.0, 0.5)]
+    assert all(f.why.startswith("Newton made no progress: 1 steps since") for f in quarters.record.failed_steps)
+    np.testing.assert_allclose(quarters.displacement_mm, whole.displacement_mm, rtol=0, atol=1e-6)
+
+
+def test_a_step_is_given_up_only_where_its_gradient_found_no_new_lowest():
+    """Newton reads each pass's |g| into its ``StallWatch``: the roller block's press takes 5 Newton steps, its |g|
+    rising once, at the third pass, and falling to a new lowest at the fourth. With 3 steps allowed since the lowest it
+    is solved in one step as by default; with 2, the step after that rise is given up (and the press solved in
+    halves)."""
+    assert _press_in_sub_steps(SolverSettings(newton_no_progress_steps=3)).record.substeps == 1
+    halves = _press_in_sub_steps(SolverSettings(newton_no_progress_steps=2))
+    assert halves.record.substeps > 1
+    assert halves.record.failed_steps[0].start == 0.0 and halves.record.failed_steps[0].end == 1.0
+    assert halves.record.failed_steps[0].iterations == 3
+
+
+def test_the_stall_watch_counts_afresh_at_every_lag_move_and_stiffness_raise(monkeypatch):
+    """Friction's lag moves and the contact stiffness raises change E and |g|: Newton restarts its ``StallWatch`` once
+    per (sub)step (its constructor) and once per lag move and per raise, in a press and a slide with friction."""
+    restarts = []
+    restart = convergence_tests.StallWatch.restart
+    monkeypatch.setattr(convergence_tests.StallWatch, "restart", lambda self: (restarts.append(1), restart(self)))
+    _, solver = _sphere_on_block(0.5)
+    P = _lift(2.0 + 2.0 + 1e-3)
+    solver.start([P])
+    P = _lift(2.0 + 2.0 - 0.3)
+    records = [solver.solve_frame([P]).record]
+    P[0, 3] += 0.15
+    records.append(solver.solve_frame([P]).record)
+    assert sum(r.lag_updates for r in records) > 0
+    assert len(restarts) == sum(r.substeps + len(r.failed_steps) + r.lag_updates + r.stiffness_raises for r in records)
+
+
+def test_stall_watch_counts_steps_since_the_lowest_gradient_afresh_after_a_restart():
+    """``StallWatch``: the steps since the pass with the lowest |g| (a new lowest starts the count again), the short
+    line searches in a row, both cleared by ``restart``; 0 steps: never for want of progress."""
+    watch = convergence_tests.StallWatch(3)
+    watch.gradient(10.0)
+    assert watch.step(1.0) == "" and watch.step(1.0) == ""  # |g| unknown after the steps: 2 since the lowest
+    watch.gradient(9.0)  # a new lowest
+    assert watch.step(1.0) == "" and watch.step(1.0) == ""
+    watch.gradient(12.0)
+    assert watch.step(1.0).startswith("Newton made no progress: 3 steps since the lowest |gradient| of the (sub)step "
+                                      "(9 N)")
+    watch.restart()  # e.g. friction's lag moved: E and |g| changed
+    watch.gradient(50.0)
+    assert watch.step(1.0) == ""
+    never = convergence_tests.StallWatch(0)
+    never.gradient(1.0)
+    assert all(never.step(1.0) == "" for _ in range(100))
+    short = convergence_tests.StallWatch(0)
+    assert all(short.step(convergence_tests.STALL_ALPHA) == "" for _ in range(convergence_tests.STALL_STEPS - 1))
+    assert short.step(convergence_tests.STALL_ALPHA).startswith("Newton stalled")
+    short.restart()
+    assert short.step(convergence_tests.STALL_ALPHA) == ""
 
 
 def test_failed_step_is_halved_from_the_last_converged_sub_step():

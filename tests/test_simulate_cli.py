@@ -44,7 +44,8 @@ def test_contact_free_scene_writes_rest_frames(tmp_path):
         record = json.loads((out / "frames" / f"{f:06d}.json").read_text())
         assert record["frame"] == f and record["time_s"] == f / 30.0
         assert record["solver"] == {"converged": True, "iterations": 0, "residual": 0.0, "seconds": 0.0,
-                                    "min_det_f": 1.0, "substeps": 0, "friction_lag_residual_n": 0.0}
+                                    "min_det_f": 1.0, "substeps": 0, "friction_lag_residual_n": 0.0,
+                                    "failed_steps": []}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "done" and summary["frames_written"] == summary["frames_requested"] == 3
     assert summary["failure"] is None and summary["contact"] is False

@@ -119,7 +119,8 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             settings=SolverSettings(degree=cfg.degree, newton_tol_mm=cfg.newton_tol_mm, linear_solver=cfg.linear_solver,
                                     slip_eps_mm=cfg.friction_slip_mm, friction_lag_moves=cfg.friction_lag_moves,
                                     coarse_cell_mm=cfg.coarse_cell_mm or None,
-                                    newton_force_rtol=cfg.newton_force_rtol or None),
+                                    newton_force_rtol=cfg.newton_force_rtol or None,
+                                    newton_no_progress_steps=cfg.newton_no_progress_steps),
             device=physics_device(cfg.device))
     faces = g.boundary_faces()
     thickness = setup.sensor.gel_size_mm[2]
@@ -144,5 +145,7 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             f, markers, g.vertices_mm + res.displacement_mm, g.vertices_mm, faces, poses, forces, depths,
             {"converged": bool(r.converged), "iterations": int(r.iterations), "residual": float(r.residual),
              "seconds": float(r.seconds), "min_det_f": float(r.min_det_f), "substeps": int(r.substeps),
-             "friction_lag_residual_n": float(r.friction_lag_residual_n)},
+             "friction_lag_residual_n": float(r.friction_lag_residual_n),
+             "failed_steps": [{"from": float(f.start), "to": float(f.end), "iterations": int(f.iterations),
+                               "why": str(f.why)} for f in r.failed_steps]},
         )

@@ -78,6 +78,12 @@ class Physics(_Strict):
         "settled, whatever its step's length (SolverSettings.newton_force_rtol); 0: the step-length test alone. 3e-3 "
         "on press_slide (H100s): 0.68-0.90x the physics seconds, markers 0.002 mm further from a finer mesh's "
         "(0.05 mm away with either); 1e-2 raised their RMS error by a quarter (BENCHMARKS.md fem_force_test_default)")
+    newton_no_progress_steps: int = Field(
+        default=30, ge=0, le=1000, description="a load step that can still be halved is given up and solved in halves "
+        "once Newton has taken this many steps since the lowest force imbalance of the step (SolverSettings."
+        "newton_no_progress_steps): next to elements flattened towards det F = 0 Newton can creep along the inversion "
+        "barrier up to its iteration cap; 0: never. Each frame's labels.json lists its failed steps and why "
+        "(solver.failed_steps; BENCHMARKS.md fem_no_progress_gpu)")
     device: Literal["auto", "cpu", "cuda"] = "auto"
     friction_slip_mm: float = Field(
         default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point moves up to this far against "

@@ -9,6 +9,7 @@ import warp as wp
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.material import ElasticMaterial
 from transtac_sim.physics.solver import (
+    FailedStep,
     FrameResult,
     IndenterStartsInsideGel,
     QuasiStaticSolver,
@@ -23,6 +24,7 @@ if os.environ.get("TRANSTAC_SIM_WARP_VERBOSE", "") != "1":
 
 __all__ = [
     "ElasticMaterial",
+    "FailedStep",
     "FrameResult",
     "IndenterStartsInsideGel",
     "QuasiStaticSolver",

@@ -5,10 +5,13 @@ Two tests end Newton (newton.py ``_newton``): the step-length test (the Newton s
 system, below ``newton_tol_mm``, at a force left of at most ``max_residual_n``: ``_short_step_converges``) and, where a
 scene sets ``newton_force_rtol``, the force test (|g| at most that fraction of the normal load on the gel's support:
 ``_force_balanced``). Where the force test is on, each Newton system needs solving only until the linear model's force
-after the step is within a fraction of the test's bound (``_force_forcing``, ``FORCE_FORCING``).
+after the step is within a fraction of the test's bound (``_force_forcing``, ``FORCE_FORCING``). Where a (sub)step can
+still be halved, Newton gives it up once it creeps instead of converging (``StallWatch``).
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 #: Where Newton's force test is on (``_force_balanced``), a system is solved no tighter than this fraction of the
 #: force test's bound over |g| (relative residual; ``_force_forcing``): the linear model's gradient after the step is
@@ -19,6 +22,48 @@ from __future__ import annotations
 #: (BENCHMARKS.md ``fem_force_forcing_gpu``); on the tiny mesh with press_slide's motion 0.5 took the fewest CG
 #: iterations of 0.1, 0.25 and 0.5 at the same Newton iterations, and 1.0 took 9 % more Newton iterations
 FORCE_FORCING = 0.5
+
+
+#: A (sub)step that can still be halved gives up once this many Newton steps in a row were cut to STALL_ALPHA or less
+#: by the line search: Newton is then creeping along the inversion barrier (elasticity.py) with the clamped Hessian, and
+#: halves of the step converge far sooner. train_random sequence 0 (the cone) on an H100, frames 4 and 5: the whole
+#: frame's step ran all 120 iterations (about 5 halvings each, 2,200 CG iterations per system, |g| rising from 6 to 35 N
+#: while E fell) and failed, 16 of the frame's 17-22 s, before its halves converged in 12-81 iterations
+#: (scripts/trace_sequence.py --newton; BENCHMARKS.md ``fem_newton_stall_gpu``).
+STALL_STEPS = 10
+STALL_ALPHA = 1.0 / 16.0
+
+
+class StallWatch:
+    """Whether Newton creeps instead of converging in one (sub)step (newton.py ``_newton``, which gives the step up
+    where it can still be halved): ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less, or
+    ``no_progress_steps`` Newton steps taken since the pass with the lowest |g| of the (sub)step, the last of them
+    before its |g| is read (``SolverSettings.newton_no_progress_steps``; 0: never). Both are counted afresh by
+    ``restart`` (friction's lag moved or the contact stiffness raised: they change E and |g|)."""
+
+    def __init__(self, no_progress_steps: int) -> None:
+        self.no_progress_steps = no_progress_steps
+        self.restart()
+
+    def restart(self) -> None:
+        self.short_steps, self.lowest, self.since_lowest = 0, np.inf, 0
+
+    def gradient(self, g_norm: float) -> None:
+        """A pass's |g| (N, free dofs)."""
+        if g_norm < self.lowest:
+            self.lowest, self.since_lowest = g_norm, 0
+
+    def step(self, alpha: float) -> str:
+        """A Newton step taken with line-search factor ``alpha``: why Newton creeps, or "" where it does not."""
+        self.short_steps = self.short_steps + 1 if alpha <= STALL_ALPHA else 0
+        self.since_lowest += 1
+        if self.short_steps >= STALL_STEPS:
+            return (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} or less by the line "
+                    "search")
+        if self.no_progress_steps and self.since_lowest >= self.no_progress_steps:
+            return (f"Newton made no progress: {self.since_lowest} steps since the lowest |gradient| of the (sub)step "
+                    f"({self.lowest:.3g} N)")
+        return ""
 
 
 class ConvergenceTests:

@@ -101,6 +101,12 @@ solved to a residual of half the bound already meets. Each system is now solved 
 (convergence_tests.py ``_force_forcing``): press_slide's Newton systems 0.65x the CG iterations, frames 1-9 0.85x
 the time (14 alternated pairs on an H100, a median of 0.092 s per frame), 122-132 Newton iterations against 122-126,
 the markers as close to a lag-converged, step-length-tested reference as before.
+
+Issue 12, twelfth pass (BENCHMARKS.md ``fem_no_progress_gpu``): next to elements flattened towards det F = 0 Newton
+could creep along the inversion barrier for its whole iteration cap, |g| growing by orders of magnitude, without the 10
+short line searches in a row that give a step up. A (sub)step that can still be halved is now also given up after 30
+steps since its lowest |g| (convergence_tests.py ``StallWatch``): on train_random over 120 sequences (an H100) 1
+step reached the cap against 6, the slowest frame 8.0-11.0 s of physics against 14.9-27.2 s.
 """
 
 from __future__ import annotations
@@ -110,7 +116,7 @@ import warp as wp
 import warp.fem as fem
 from scipy.spatial.transform import Rotation
 
-from transtac_sim.physics.convergence_tests import ConvergenceTests
+from transtac_sim.physics.convergence_tests import ConvergenceTests, StallWatch
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
 from transtac_sim.physics.friction_lag import FrictionLag
 from transtac_sim.physics.reductions import (
@@ -133,15 +139,6 @@ from transtac_sim.physics.warm_start import lifts_off
 #: and 9.2-9.3 s with 0.1, the same CG iterations in all.
 FORCING_MAX = 0.01
 
-#: A (sub)step that can still be halved gives up once this many Newton steps in a row were cut to STALL_ALPHA or less
-#: by the line search: Newton is then creeping along the inversion barrier (elasticity.py) with the clamped Hessian, and
-#: halves of the step converge far sooner. train_random sequence 0 (the cone) on an H100, frames 4 and 5: the whole
-#: frame's step ran all 120 iterations (about 5 halvings each, 2,200 CG iterations per system, |g| rising from 6 to 35 N
-#: while E fell) and failed, 16 of the frame's 17-22 s, before its halves converged in 12-81 iterations
-#: (scripts/trace_sequence.py --newton; BENCHMARKS.md ``fem_newton_stall_gpu``).
-STALL_STEPS = 10
-STALL_ALPHA = 1.0 / 16.0
-
 #: a Newton system's CG goes on to the tight tolerance (linear.py ``cg_tol``; the force test's floor where that is
 #: higher, convergence_tests.py ``_force_forcing``) where its step is below this many newton_tol_mm: there the step's
 #: length decides the convergence test, and a loosely solved step is shorter
@@ -155,10 +152,11 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
 
     def _newton(self, ind, may_stall: bool = False, lifting: bool = False) -> tuple[bool, int, str, float]:
         """Minimises E over u, from self.u, for one (sub)step: (converged, Newton iterations, why not, the
-        largest penetration (mm) at the solution). With ``may_stall`` (the step can still be halved) it gives up after
-        ``STALL_STEPS`` line searches in a row cut to ``STALL_ALPHA`` or less (counted afresh after a lag move or a
-        stiffness raise: they change E). With ``lifting`` (the step lifts an indenter off the gel), a full step refused
-        by its energy is solved again with the contact it predicts (contact_prediction.py) and that full step is tried.
+        largest penetration (mm) at the solution). With ``may_stall`` (the step can still be halved) it gives up where
+        Newton creeps instead of converging (convergence_tests.py ``StallWatch``: line searches cut short in a row,
+        or no new lowest |g| for many steps). With ``lifting`` (the step lifts an indenter off the gel), a full step
+        refused by its energy is solved again with the contact it predicts (contact_prediction.py) and that full step
+        is tried.
 
         Each pass: gradient at u (with friction's current lag), the estimated remaining Newton step, then a lag move
         (``_move_lag``), the convergence test, or a Newton iteration: Hessian, step, line search. Converged when the
@@ -181,7 +179,8 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
         s = self.settings
         tol = s.newton_tol_mm
         friction = any(i.friction > 0 for i in self.indenters)
-        iterations, raises, lags, full_step, inverted, short_steps = 0, 0, 0, False, False, 0
+        iterations, raises, lags, full_step, inverted = 0, 0, 0, False, False
+        watch = StallWatch(s.newton_no_progress_steps)  # whether Newton creeps (``may_stall``)
         step_max = np.inf  # max |du| (mm) of the last Newton step
         g_first = None  # |g| at the first pass: the forcing term's reference
         energy_here = None  # E at self.u where the line search has just evaluated it (the same u, lag and stiffness)
@@ -197,6 +196,7 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
             if g_norm == 0.0:  # e.g. nothing touches yet: already at equilibrium
                 return True, iterations, "", 0.0
             g_first = g_first or g_norm
+            watch.gradient(g_norm)
             # where the force test holds, Newton has converged or friction's lag moves whatever a step estimate says
             balanced = self._force_balanced(g_norm, load)
             change = lag_change if not balanced else None
@@ -205,13 +205,15 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
             known = self._linear.known_summary(estimate) if estimate is not None else None
             remaining = np.inf if estimate is None else known[1] if known else max_abs(estimate)
             if lag_open and self._move_lag(ind, remaining, change):
-                lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
+                lags, energy_here, full_step = lags + 1, None, False
+                watch.restart()
                 continue
             # converged on the force left (no estimate was made) once friction's lag is settled, or on the estimated
             # step, which is taken too (below tol E changes by round-off)
             if balanced or (remaining < tol and self._short_step_converges(g_norm)):
                 if balanced and lag_open and self._move_lag(ind, 0.0):
-                    lags, energy_here, full_step, short_steps = lags + 1, None, False, 0
+                    lags, energy_here, full_step = lags + 1, None, False
+                    watch.restart()
                     continue
                 energy_here = None
                 if estimate is not None:
@@ -221,7 +223,8 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
                 pen = self._raise_stiffness(ind, raises)
                 if pen is not None:
                     return True, iterations, "", pen
-                raises, full_step, short_steps = raises + 1, False, 0
+                raises, full_step = raises + 1, False
+                watch.restart()
                 continue
             if iterations == self._newton_iteration_cap():
                 why = " (line-search steps cut short by inverted elements, det F <= 0)" if inverted else ""
@@ -300,19 +303,20 @@ class NewtonSteps(ConvergenceTests, FrictionLag, TrialPoints):
                     continue
                 wp.copy(self.u.dof_values, self._u_try.dof_values)
                 if friction and lags < s.friction_lag_moves and self._move_lag(ind, 0.0):
-                    lags, full_step, short_steps = lags + 1, True, 0
+                    lags, full_step = lags + 1, True
+                    watch.restart()
                     continue
                 pen = self._raise_stiffness(ind, raises)
                 if pen is not None:
                     return True, iterations, "", pen
-                raises, full_step, short_steps = raises + 1, False, 0
+                raises, full_step = raises + 1, False
+                watch.restart()
                 continue
             full_step, energy_here, take_trial = alpha == 1.0, e_try, True  # u = u_try with the next gradient
-            short_steps = short_steps + 1 if alpha <= STALL_ALPHA else 0
-            if may_stall and short_steps == STALL_STEPS:
+            stalled = watch.step(alpha)
+            if may_stall and stalled:
                 wp.copy(self.u.dof_values, self._u_try.dof_values)
-                return False, iterations, (f"Newton stalled: {STALL_STEPS} steps in a row cut to 1/{1 / STALL_ALPHA:g} "
-                                           "or less by the line search"), 0.0
+                return False, iterations, stalled, 0.0
 
     def _read_gradient(self, ind, lag_change: bool, energy: bool, take_trial: bool = False) -> tuple:
         """(-g and |g| on the free components, the normal load on the support, |u - u_lag| where ``lag_change``, E(u)

@@ -76,6 +76,35 @@ class SolverSettings:
     # Scenes take 3e-3 unless they set it (config/scene.py, [physics] newton_force_rtol; BENCHMARKS.md
     # ``fem_force_test_default``)
     newton_force_rtol: float | None = None
+    # a (sub)step that can still be halved is given up once Newton has taken this many steps since the lowest |gradient|
+    # (N, free dofs) of the (sub)step, the last of them before its |gradient| is read (counted afresh after a lag move
+    # or a stiffness raise; convergence_tests.py ``StallWatch``): next to elements flattened towards det F = 0 Newton
+    # can creep along the inversion barrier up to its iteration cap, |gradient| growing by orders of magnitude, without
+    # 10 line searches in a row cut short (the stall rule). On train_random (120 sequences, 8 MPS workers, an H100) 1
+    # step reached the cap against 6 with 0 (off); over three runs of each the slowest frame took 8.0-11.0 s of physics
+    # against 14.9-27.2 s, the mean 0.43-0.45 s against 0.48-0.56 s; the stability table's depth 50 % (the device path
+    # on the CPU, deterministic) 144 Newton iterations against 288, to the same state. A step given up might have
+    # converged in a few more steps (BENCHMARKS.md ``fem_no_progress_gpu``). 0 turns it off
+    newton_no_progress_steps: int = 30
+
+    def __post_init__(self) -> None:
+        if self.newton_no_progress_steps < 0:
+            raise ValueError(f"newton_no_progress_steps must be >= 0 (0: off), got {self.newton_no_progress_steps}")
+
+
+@dataclass(frozen=True)
+class FailedStep:
+    """A load (sub)step that failed and was halved (solver.py): the frame's motion from ``start`` to ``end`` (fractions
+    of it), the Newton iterations it took and why it failed."""
+
+    start: float
+    end: float
+    iterations: int
+    why: str
+
+    def __str__(self) -> str:
+        return (f"the step from {self.start:g} to {self.end:g} of the frame's motion failed after {self.iterations} "
+                f"Newton iterations ({self.why})")
 
 
 @dataclass
@@ -104,6 +133,7 @@ class SolverRecord:
     # below 3e-3 N but in one frame, 0.065 N against a friction force of 1.2 N (BENCHMARKS.md
     # ``fem_friction_lag_residual``)
     friction_lag_residual_n: float = 0.0
+    failed_steps: tuple[FailedStep, ...] = ()  # the frame's (sub)steps that failed and were halved, in order
 
 
 @dataclass

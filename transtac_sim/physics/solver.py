@@ -9,7 +9,7 @@ its gradient and Hessian is in assembly.py; the displacement at points inside th
 point_displacement.py. The Newton iteration of one (sub)step is in newton.py: warm start
 from the extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a
 line search that never accepts an inverted element, and a convergence test on the estimated Newton step.
-A step that does not converge (or stalls: newton.py ``STALL_STEPS``) or leaves a penetration above
+A step that does not converge (or creeps: convergence_tests.py ``StallWatch``) or leaves a penetration above
 ``penetration_tol_mm`` is retried with half the
 pose increment from the last converged sub-step, and the rest of the frame goes on in steps of that size (adaptive
 load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame); past that, ``SolverDidNotConverge`` says
@@ -40,6 +40,7 @@ from transtac_sim.physics.point_displacement import PointDisplacement
 from transtac_sim.physics.reductions import negated_free_buffer, reduction_buffer
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solver's API)
+    FailedStep,
     FrameResult,
     IndenterStartsInsideGel,
     SolverDidNotConverge,
@@ -351,8 +352,7 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
                 self._keep_stick(self._last_ind)
                 done, prev, steps = done + size, target, steps + 1
                 continue
-            tried.append(f"the step from {done / whole:g} to {(done + size) / whole:g} of the frame's motion failed "
-                         f"({why})")
+            tried.append(FailedStep(done / whole, (done + size) / whole, it, why))
             wp.copy(self.u.dof_values, self.u_prev.dof_values)
             if size == 1:
                 break
@@ -363,7 +363,7 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
             names = ", ".join(repr(i.name) for i in self.indenters)
             raise SolverDidNotConverge(
                 f"frame {frame} (indenters {names}) did not converge with sub-steps down to 1/{whole} of its motion; "
-                "tried: " + "; ".join(tried) + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, "
+                "tried: " + "; ".join(map(str, tried)) + f". Settings: newton_tol_mm={self.settings.newton_tol_mm}, "
                 f"max_newton_iterations={self._newton_iteration_cap()}, "
                 f"max_substep_halvings={self.settings.max_substep_halvings}, "
                 f"contact stiffness {self.contact_stiffness:.4g} N/mm^3"
@@ -385,6 +385,7 @@ class QuasiStaticSolver(Assembly, ContactRecords, NewtonSteps, WarmStart, Contac
             lag_updates=self.stats["lag_updates"],
             indefinite_hessians=self.stats["indefinite_hessians"],
             predicted_contacts=self.stats["predicted_contacts"],
+            failed_steps=tuple(tried),
         )
         self._poses = poses
         self.frame_index += 1

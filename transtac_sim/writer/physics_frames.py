@@ -11,7 +11,7 @@ DIR/frames/NNNNNN.npz   vertices_mm (V,3) deformed vertices (contact scenes only
                         centres (row i is marker_ids[i]), indenter_poses_mm (n,4,4) indenter -> gel frame
                         (translation in mm), forces_n (n,3) force of each indenter on the gel, depths_mm (n,)
 DIR/frames/NNNNNN.json  frame, time_s, solver {converged, iterations, residual, seconds, min_det_f, substeps,
-                         friction_lag_residual_n},
+                         friction_lag_residual_n, failed_steps [{from, to, iterations, why}]},
                         indenters [{name, pose_mm, force_n, depth_mm}], max_marker_displacement_mm
 DIR/summary.json        kind, scene, scene_config, status (running | done | failed), frames_requested,
                         frames_written, failure {frame, message} or null, per-stage and per-frame seconds
@@ -132,6 +132,7 @@ def write_frame(out: Path, setup: SceneSetup, phys: PhysicsFrame) -> dict:
     solver.setdefault("min_det_f", 1.0)
     solver.setdefault("substeps", 0)
     solver.setdefault("friction_lag_residual_n", 0.0)
+    solver.setdefault("failed_steps", [])
     du = np.linalg.norm(phys.markers_gel_mm - setup.sensor.markers_rest_gel_mm, axis=1)
     record = {
         "frame": phys.frame, "time_s": phys.frame / setup.scene.outputs.frame_rate_hz, "solver": solver,
