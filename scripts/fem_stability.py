@@ -16,7 +16,6 @@ on a smaller, coarser block).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 import time
@@ -150,12 +149,10 @@ def build_solver(case: Case, block: Block, device: str = "cpu", max_newton_itera
         in_gel[T[material_index == 0].ravel()] = True
         backing_vertices = ~in_gel  # vertices of backing tets only (the interface belongs to the gel)
     ind = make_indenter(case.shape, block.thickness, case.friction)
+    replaced = {name: value for name, value in (("newton_no_progress_steps", no_progress_steps),
+                                                ("linear_solver", linear_solver)) if value is not None}
     settings = SolverSettings(degree=block.degree, max_newton_iterations=max_newton_iterations,
-                              newton_force_rtol=newton_force_rtol)
-    if no_progress_steps is not None:
-        settings = dataclasses.replace(settings, newton_no_progress_steps=no_progress_steps)
-    if linear_solver is not None:
-        settings = dataclasses.replace(settings, linear_solver=linear_solver)
+                              newton_force_rtol=newton_force_rtol, **replaced)
     solver = QuasiStaticSolver(V, T, materials, [ind], settings, device=device, material_index=material_index)
     return solver, V, ind, backing_vertices
 

@@ -421,11 +421,11 @@ def test_a_step_without_progress_is_halved_unless_the_setting_is_0():
     with pytest.raises(ValueError, match="newton_no_progress_steps must be >= 0"):
         SolverSettings(newton_no_progress_steps=-1)
     whole = _press_in_sub_steps(SolverSettings())
-    assert whole.record.substeps == 1 and whole.record.iterations > 1
-    assert _press_in_sub_steps(SolverSettings(newton_no_progress_steps=0)).record.substeps == 1
+    assert whole.record.substeps == 1 and whole.record.iterations == 5
+    assert _press_in_sub_steps(SolverSettings(newton_no_progress_steps=0)).record.iterations == 5
     quarters = _press_in_sub_steps(SolverSettings(newton_no_progress_steps=1))
     assert quarters.record.converged and quarters.record.substeps == 4
-    assert [(f.start, f.end) for f in quarters.record.failed_steps] == [(0.0, 1.0), (0.0, 0.5)]
+    assert [(f.start, f.end, f.iterations) for f in quarters.record.failed_steps] == [(0.0, 1.0, 1), (0.0, 0.5, 1)]
     assert all(f.why.startswith("Newton made no progress: 1 steps since") for f in quarters.record.failed_steps)
     np.testing.assert_allclose(quarters.displacement_mm, whole.displacement_mm, rtol=0, atol=1e-6)
 
@@ -437,9 +437,8 @@ def test_a_step_is_given_up_only_where_its_gradient_found_no_new_lowest():
     halves)."""
     assert _press_in_sub_steps(SolverSettings(newton_no_progress_steps=3)).record.substeps == 1
     halves = _press_in_sub_steps(SolverSettings(newton_no_progress_steps=2))
-    assert halves.record.substeps > 1
-    assert halves.record.failed_steps[0].start == 0.0 and halves.record.failed_steps[0].end == 1.0
-    assert halves.record.failed_steps[0].iterations == 3
+    assert halves.record.substeps == 4  # the half gives up the same way; quarters may not
+    assert [(f.start, f.end, f.iterations) for f in halves.record.failed_steps] == [(0.0, 1.0, 3), (0.0, 0.5, 3)]
 
 
 def test_the_stall_watch_counts_afresh_at_every_lag_move_and_stiffness_raise(monkeypatch):
