@@ -8,7 +8,7 @@ Newton's force test.
 
 ``scripts/fem_error_vs_runtime.py`` measures a frictionless press on a structured quarter block; datasets are made of
 presses *and slides* with friction, on fTetWild meshes of the whole gel. This script solves a scene as ``generate``
-does, once per setting EDGE/LAGS[/SPLIT[/RTOL]]:
+does, once per setting EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]]:
 - ``[mesh] contact_edge_mm`` = EDGE, the element size over the contact region (mm);
 - ``[physics] friction_lag_moves`` = LAGS, friction's lag moves per load step (newton.py);
 - SPLIT (default 1): every trajectory segment's frames times SPLIT, each frame then solved in SPLIT load steps on the
@@ -16,7 +16,11 @@ does, once per setting EDGE/LAGS[/SPLIT[/RTOL]]:
   (``friction_slip_mm``) applies to each load step's slip, so a split also loosens it against the frame's motion;
 - RTOL (default: the scene's): ``[physics] newton_force_rtol``, Newton's force test (convergence_tests.py
   ``_force_balanced``: also converged where |gradient| is at most RTOL times the normal load on the gel's support); 0
-  turns it off.
+  turns it off, "-" keeps the scene's (to give SLIP alone);
+- SLIP (default: ``--friction-slip-mm``'s, else the scene's): ``[physics] friction_slip_mm``, friction's smoothing
+  (contact.py: a sticking point moves up to SLIP mm against the indenter before friction reaches mu times the
+  pressure). Larger is smoother for Newton and further from Coulomb's law; a reference with a small SLIP measures
+  what a larger one costs.
 
 Everything else is as in the scene. The markers are the scene's own (each mesh embeds them anew), so every setting's
 marker centres compare with the reference's (a finer setting) frame by frame. Per setting:
@@ -69,33 +73,38 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 class Setting(NamedTuple):
-    """One way of solving the scene (``main``'s EDGE/LAGS[/SPLIT])."""
+    """One way of solving the scene (``main``'s EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]])."""
 
     edge_mm: float  # [mesh] contact_edge_mm
     lag_moves: int  # [physics] friction_lag_moves
     split: int = 1  # each frame solved as this many load steps (the trajectory's frames times SPLIT)
     force_rtol: float | None = None  # [physics] newton_force_rtol (0: off); None: the scene's
+    slip_mm: float | None = None  # [physics] friction_slip_mm; None: --friction-slip-mm's, else the scene's
 
     def label(self) -> str:
-        rtol = f"/{self.force_rtol:g}" if self.force_rtol is not None else ""
-        return f"{self.edge_mm:g}/{self.lag_moves}" + (f"/{self.split}" if self.split > 1 or rtol else "") + rtol
+        slip = f"/{self.slip_mm:g}" if self.slip_mm is not None else ""
+        rtol = f"/{self.force_rtol:g}" if self.force_rtol is not None else ("/-" if slip else "")
+        return f"{self.edge_mm:g}/{self.lag_moves}" + (f"/{self.split}" if self.split > 1 or rtol else "") + rtol + slip
 
 
 def parse_setting(text: str) -> Setting:
-    """"EDGE/LAGS[/SPLIT[/RTOL]]" -> Setting."""
+    """"EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]]" -> Setting (RTOL "-": the scene's)."""
     parts = text.strip().split("/")
     try:
-        if len(parts) not in (2, 3, 4):
+        if len(parts) not in (2, 3, 4, 5):
             raise ValueError
         setting = Setting(float(parts[0]), int(parts[1]), int(parts[2]) if len(parts) >= 3 else 1,
-                          float(parts[3]) if len(parts) == 4 else None)
+                          float(parts[3]) if len(parts) >= 4 and parts[3] != "-" else None,
+                          float(parts[4]) if len(parts) == 5 else None)
     except ValueError:
-        raise typer.BadParameter(f"{text!r}: expected EDGE/LAGS, EDGE/LAGS/SPLIT or EDGE/LAGS/SPLIT/RTOL, e.g. 0.8/4, "
-                                 "0.8/4/2 or 0.8/4/1/1e-3") from None
+        raise typer.BadParameter(f"{text!r}: expected EDGE/LAGS, EDGE/LAGS/SPLIT, EDGE/LAGS/SPLIT/RTOL or "
+                                 "EDGE/LAGS/SPLIT/RTOL/SLIP, e.g. 0.8/4, 0.8/4/2, 0.8/4/1/1e-3 or 0.8/4/1/-/0.2") from None
     if setting.edge_mm <= 0 or setting.lag_moves < 1 or setting.split < 1:
         raise typer.BadParameter(f"{text!r}: EDGE must be > 0 mm, LAGS and SPLIT >= 1")
     if setting.force_rtol is not None and not 0.0 <= setting.force_rtol <= 0.1:
         raise typer.BadParameter(f"{text!r}: RTOL must be within [0, 0.1] (0: the force test off)")
+    if setting.slip_mm is not None and not 0.0 < setting.slip_mm <= 1.0:
+        raise typer.BadParameter(f"{text!r}: SLIP must be within (0, 1] mm ([physics] friction_slip_mm)")
     return setting
 
 
@@ -110,11 +119,12 @@ def with_split(setup, split: int):
 
 def with_setting(setup, setting: Setting, device: str, friction: float | None = None,
                  slip_mm: float | None = None):
-    """The scene setup with the contact mesh size, lag moves and (where the setting names it) Newton's force test
-    replaced, and if given the physics device, every indenter's friction coefficient and friction's smoothing (not the
-    split: ``solve`` splits the frames)."""
+    """The scene setup with the contact mesh size, lag moves and (where the setting names them) Newton's force test
+    and friction's smoothing replaced, and if given the physics device, every indenter's friction coefficient and
+    friction's smoothing (``slip_mm``, where the setting names none; not the split: ``solve`` splits the frames)."""
     if friction is not None:
         setup = with_friction(setup, friction)
+    slip_mm = setting.slip_mm if setting.slip_mm is not None else slip_mm
     scene = setup.scene
     physics = scene.physics.model_copy(update={"friction_lag_moves": setting.lag_moves}
                                        | ({"device": device} if device else {})
@@ -200,12 +210,12 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 5.2), dpi=90)
     for ax, key, label in ((axes[0], "marker_rms_mm", "marker error, RMS over frames and markers (mm)"),
                            (axes[1], "marker_max_mm", "marker error, largest (mm)")):
-        for lags, split, rtol in sorted({line_of(r) for r in rows}):
+        for lags, split, rtol, slip in sorted({line_of(r) for r in rows}):
             pts = sorted((r["s_frame"], max(r[key], 1e-5), r["edge_mm"]) for r in rows
-                         if line_of(r) == (lags, split, rtol))
+                         if line_of(r) == (lags, split, rtol, slip))
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", ms=5, lw=0.8,
                     label=f"{lags} lag move(s) a step" + (f", frames split in {split}" if split > 1 else "")
-                    + (f", force test {rtol:g}" if rtol else ""))
+                    + (f", force test {rtol:g}" if rtol else "") + (f", slip {slip:g} mm" if slip else ""))
             for t, e, h in pts:
                 ax.annotate(f"{h:g} mm", (t, e), fontsize=7, xytext=(3, 3), textcoords="offset points")
         ax.set_xscale("log")
@@ -236,8 +246,10 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
         pass
     rest = np.asarray(base.sensor.markers_rest_gel_mm)
 
-    def described(setting: Setting) -> dict:  # the row's setting, with the force test it solved with
-        return setting._asdict() | {"force_rtol": force_rtol(setting, base)}
+    def described(setting: Setting) -> dict:  # the row's setting, with the force test and smoothing it solved with
+        return setting._asdict() | {"force_rtol": force_rtol(setting, base),
+                                    "slip_mm": with_setting(base, setting, device, friction, slip_mm).scene.physics
+                                    .friction_slip_mm}
 
     try:
         ref = solve(with_setting(base, ref_setting, device, friction, slip_mm), frames, ref_setting.split)
@@ -270,10 +282,10 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
     return {"reference": ref, "rows": rows, "meta": meta}
 
 
-def line_of(row: dict) -> tuple[int, int, float]:
-    """A row's plotted line: (lag moves, split, force test rtol; 0 off). Rows of runs before the force test was an
-    axis have none."""
-    return row["lag_moves"], row["split"], row.get("force_rtol") or 0.0
+def line_of(row: dict) -> tuple[int, int, float, float]:
+    """A row's plotted line: (lag moves, split, force test rtol; 0 off, friction's smoothing in mm; 0 where the row
+    does not say). Rows of runs before the force test or the smoothing was an axis have none."""
+    return row["lag_moves"], row["split"], row.get("force_rtol") or 0.0, row.get("slip_mm") or 0.0
 
 
 def mean_seconds(row: dict) -> float:
@@ -285,21 +297,26 @@ def rtol_cell(row: dict) -> str:
     return f"{row['force_rtol']:g}" if row.get("force_rtol") else "off"
 
 
+def slip_cell(row: dict) -> str:
+    return f"{row['slip_mm']:g}" if row.get("slip_mm") else "-"
+
+
 def report(data: dict, name: str) -> str:
     """The BENCHMARKS.md section's markdown."""
     ref, rows, meta = data["reference"], data["rows"], data["meta"]
-    header = ("| contact edge (mm) | lag moves a step | each frame split into | force test (rtol) | tets | "
+    header = ("| contact edge (mm) | lag moves a step | each frame split into | force test (rtol) | friction slip (mm) "
+              "| tets | "
               "P2 unknowns | physics s / frame (median; mean) | Newton it. / frame (median; all frames) | "
               "load steps taken per frame | marker err max mm (%) | marker err RMS mm (%) | "
               "marker err max per frame (mm) | force err max (% of max force) |")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in [*rows, ref]:
         if "failed" in r:
-            lines.append(f"| {r['edge_mm']:g} | {r['lag_moves']} | {r['split']} | {rtol_cell(r)} | "
+            lines.append(f"| {r['edge_mm']:g} | {r['lag_moves']} | {r['split']} | {rtol_cell(r)} | {slip_cell(r)} | "
                          f"failed: {r['failed']} |" + " |" * 8)
             continue
         cells = [f"{r['edge_mm']:g}" + (" (reference)" if r is ref else ""), str(r["lag_moves"]), str(r["split"]),
-                 rtol_cell(r), str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}; {mean_seconds(r):.2f}",
+                 rtol_cell(r), slip_cell(r), str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}; {mean_seconds(r):.2f}",
                  f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}",
                  ", ".join(map(str, r["substeps"]))]
         cells += ["-"] * 4 if r is ref else [
@@ -326,10 +343,11 @@ def report(data: dict, name: str) -> str:
 
 def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frames: int = typer.Option(10, min=2),
          settings: str = typer.Option("1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4",
-                                      help="EDGE/LAGS[/SPLIT[/RTOL]], comma-separated: contact edge (mm) / lag "
-                                      "moves / load steps a frame / Newton's force test (0: off; default: the "
-                                      "scene's)"),
-         reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT[/RTOL]] of the reference solution"),
+                                      help="EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]], comma-separated: contact edge (mm) / "
+                                      "lag moves / load steps a frame / Newton's force test (0: off; -, the "
+                                      "default: the scene's) / friction's smoothing (mm; default: "
+                                      "--friction-slip-mm's, else the scene's)"),
+         reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]] of the reference solution"),
          device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
                                                "(0: frictionless); the names end in _friction_MU"),

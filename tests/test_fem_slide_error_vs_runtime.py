@@ -25,7 +25,11 @@ def test_settings_parse_and_refuse_what_they_cannot_be():
     assert study.Setting(0.65, 1, 2).label() == "0.65/1/2" and study.Setting(0.8, 4).label() == "0.8/4"
     assert study.Setting(0.8, 4, 1, 3e-3).label() == "0.8/4/1/0.003"
     assert study.Setting(0.8, 4, 1, 0.0).label() == "0.8/4/1/0"
-    for bad in ("0.8", "0.8/4/2/1", "0.8/4/2/-1e-3", "0.8/4/1/1e-3/2", "a/4", "0/4", "0.8/0", "0.8/4/0"):
+    assert study.parse_setting("0.8/1/1/-/0.2") == study.Setting(0.8, 1, 1, None, 0.2)  # the scene's force test
+    assert study.parse_setting("0.8/1/1/0/0.2") == study.Setting(0.8, 1, 1, 0.0, 0.2)
+    assert study.Setting(0.8, 1, 1, None, 0.2).label() == "0.8/1/1/-/0.2"
+    for bad in ("0.8", "0.8/4/2/1", "0.8/4/2/-1e-3", "0.8/4/1/1e-3/2", "0.8/4/1/-/0", "0.8/4/1/-/0.1/1", "a/4", "0/4",
+                "0.8/0", "0.8/4/0"):
         with pytest.raises(typer.BadParameter):
             study.parse_setting(bad)
 
@@ -41,6 +45,18 @@ def test_a_setting_sets_the_force_test_or_leaves_the_scenes():
         assert study.force_rtol(setting, setup) == rtol
     assert study.rtol_cell({"force_rtol": 0.0}) == "off" and study.rtol_cell({}) == "off"
     assert study.rtol_cell({"force_rtol": 3e-3}) == "0.003"
+
+
+def test_a_setting_sets_the_smoothing_over_the_runs_or_leaves_the_scenes():
+    """SLIP replaces [physics] friction_slip_mm; without it --friction-slip-mm's (``slip_mm``) stands, else the
+    scene's (0.05 mm by default, config/scene.py)."""
+    setup = load_setup(FIXTURE)
+    assert setup.scene.physics.friction_slip_mm == 0.05
+    for setting, run_slip, slip in ((study.Setting(1.5, 4), None, 0.05), (study.Setting(1.5, 4), 0.02, 0.02),
+                                    (study.Setting(1.5, 4, 1, None, 0.2), None, 0.2),
+                                    (study.Setting(1.5, 4, 1, None, 0.2), 0.02, 0.2)):
+        assert study.with_setting(setup, setting, "cpu", slip_mm=run_slip).scene.physics.friction_slip_mm == slip
+    assert study.slip_cell({"slip_mm": 0.2}) == "0.2" and study.slip_cell({}) == "-"
 
 
 def test_p2_unknowns_count_vertices_and_edges():
@@ -98,14 +114,16 @@ def test_a_failed_setting_gets_its_row_and_the_others_go_on(monkeypatch):
                 "iterations": [3] * frames, "substeps": [split] * frames, "tets": 10, "dofs": 30}
 
     monkeypatch.setattr(study, "solve", fake_solve)
-    settings = [study.Setting(2.0, 4), study.Setting(1.8, 4, 2, 0.0)]
+    settings = [study.Setting(2.0, 4), study.Setting(1.8, 4, 2, 0.0, 0.2)]
     data = study.measure(FIXTURE, load_setup(FIXTURE), 2, settings, study.Setting(1.5, 4), "cpu", False, None, None)
     failed, solved = data["rows"]
     assert failed["failed"] == "frame 1: did not converge" and "marker_max_mm" not in failed
     assert solved["marker_max_mm"] == pytest.approx(0.01) and solved["split"] == 2
     assert failed["force_rtol"] == 3e-3 and solved["force_rtol"] == 0.0  # the scene's, and the setting's (off)
+    assert failed["slip_mm"] == 0.05 and solved["slip_mm"] == 0.2
     text = study.report(data, "fem_slide_error_vs_runtime")
     rows = [line for line in text.splitlines() if line.startswith("| ") and "contact edge" not in line]
-    assert [line.count("|") for line in rows] == [14, 14, 14]  # 13 cells each: the failed row too
+    assert [line.count("|") for line in rows] == [15, 15, 15]  # 14 cells each: the failed row too
     assert "failed: frame 1: did not converge" in rows[0] and rows[2].startswith("| 1.5 (reference)")
     assert [line.split("|")[4].strip() for line in rows] == ["0.003", "off", "0.003"]
+    assert [line.split("|")[5].strip() for line in rows] == ["0.05", "0.2", "0.05"]
