@@ -1,112 +1,16 @@
 """Newton for one quasi-static (sub)step, as a mixin of ``QuasiStaticSolver`` (solver.py).
 
-Where the iterations of the earlier solver went (tiny press fixture, friction 0.5: 19-23 per frame) and what
-replaced each source (scripts/fem_frame_timing.py, BENCHMARKS.md ``fem_newton_iterations_cpu``):
+E(u), the gel's elastic energy with the inversion barrier, the penalty contact and friction with its normal pressure
+and tangent plane lagged (assembly.py, contact.py), is minimised over the free displacement dofs (mm) for the
+indenters' poses of the (sub)step. Each Newton iteration takes the exact Hessian, or the clamped or Gauss-Newton one
+where it is not positive definite (``_hessian_ladder``), solves its system inexactly (``FORCING_MAX``, ``EXACT_BELOW``)
+and backtracks along the step (Armijo on E, a quadratic-interpolation cut) without ever accepting det F <= 0. Inside the
+loop friction's lag moves (friction_lag.py), the contact stiffness rises at convergence (``_raise_stiffness``), and on
+releases a refused full step is solved again with the contact it predicts (contact_prediction.py); it starts from the
+warm start (warm_start.py) and ends by the convergence tests, or gives the step up (convergence_tests.py). ``_newton``
+says how the pieces fit together.
 
-- Friction's lag (normal pressure and tangent plane at u_lag) was an outer loop: Newton to convergence, move
-  the lag, Newton again (5 Newton solves per step, each ending with an assembly and solve that only
-  confirmed convergence). Here the lag is moved inside Newton as soon as Newton is closer to the current
-  lag's solution than the lag is to u (``_move_lag``): an inexact fixed point on the lag.
-- Convergence needed a full Newton step below ``newton_tol_mm``, i.e. one more Hessian assembly and solve
-  after the last real step. After a full step (alpha = 1) the next step is now estimated from the new
-  gradient with the last Hessian (``LinearSolver.solve_last``: CG preconditioned with the kept factorisation).
-- Each (sub)step started from the last state. It now starts from the last increment scaled to this step's
-  pose increment when that lowers E and keeps det F > 0 (warm_start.py ``_warm_start``); on a slide its contact also
-  gives friction's first lag.
-- The contact stiffness raise re-solved the whole step; it now happens at convergence inside Newton and
-  Newton goes on from there (``_raise_stiffness``).
-- The line search accepted steps that invert an element and the step then failed after the fact (and was
-  sub-stepped); it now rejects them (det F <= 0 at any quadrature point of ``_min_det``).
-
-Issue 12, second pass (scripts/fem_frame_timing.py; scripts/fem_stability.py's slide cases):
-
-- Friction's stick-slip switch was the main cost: without friction the same frames take 5-7 iterations.
-  ``SolverSettings.slip_eps_mm`` is 0.05 mm instead of 0.01 mm (see there).
-- The volumetric Hessian's geometric term was always clamped (elasticity.py), which makes the Hessian inexact
-  wherever the clamp acts and the end of Newton linear instead of quadratic (seen on the slides: steps
-  shrinking 4x per iteration). The exact Hessian is tried first and the clamped one only where CHOLMOD finds
-  the exact one is not positive definite (``_hessian_ladder``).
-- The line search halved the step; it now jumps to the minimiser of the parabola through E(0), E'(0) and
-  E(alpha) (within [0.1, 0.5] alpha, Nocedal & Wright 3.5), which lands nearer the minimum along the Newton
-  direction when friction makes the full step overshoot.
-- Where a slide starts the last increment points the wrong way (down); the warm start also tries u_prev
-  carried along by the indenter's tangential translation (warm_start.py ``_carried``): the dent starts where it will
-  be.
-
-Issue 12, third pass, the device path (scripts/fem_phase_profile.py; BENCHMARKS.md ``fem_newton_variants_gpu``):
-CG was 80 % of a press-and-slide frame on an H100, 500 iterations per Newton system at its 1e-8 tolerance.
-Newton's systems are now solved inexactly (``FORCING_MAX``; tightened to ``LinearSolver.cg_tol``, linear.py, once
-the step is small enough to decide convergence), and the step estimate and early lag moves that the host path had
-(``solve_last``) use the last device system: 25 CG iterations per solve instead of 500, 1.4x faster frames.
-
-Issue 12, fourth pass (BENCHMARKS.md ``fem_definite_cg_gpu``): the device path took the clamped Hessian always,
-because Warp's CG cannot tell an indefinite matrix before its iteration cap; where the clamp acts (in compression,
-almost everywhere) Newton then converges linearly. The device CG now stops at its first direction of non-positive
-curvature (definite_cg.py), so the device tries the exact Hessian first as the host path does, and solves its
-systems to a tighter forcing term (``FORCING_MAX`` 0.01: an exact-Hessian step solved to 0.1 wastes the Hessian's
-accuracy): press_slide frames 1-5 in 82 Newton iterations instead of 111, 1.26x faster on an H100.
-
-Issue 12, fifth pass, the host path (BENCHMARKS.md ``fem_host_inexact_newton_cpu``): the host solved every Newton system
-to a relative residual of 1e-6, factorising anew wherever the kept factorisation's PCG could not get there. It now solves
-to the forcing term as the device does (linear.py), from the step estimate where there is one, and no step is estimated
-right after a lag move (on the tiny press fixture such an estimate never showed convergence: the move shifts the
-solution). Tiny press fixture, frames 0-1 on the 2-core CPU: 8 -> 4 factorisations, 18 -> 14 Newton iterations,
-4.9-5.2 -> 3.8-4.0 s. On an H100 (the estimate skip is the only device-path change) train_random sequences 0-7 took
-1193 against 1233 Newton iterations (``fem_lag_estimate_gpu``).
-
-Issue 12, sixth pass, the device path again (press_slide frames 1-9 on an H100: 0.88-0.98x, 0.89-0.93x and 0.95x the
-time in three steps, each against the tree before it in one lease; about 0.33 s per frame at the end): the gradient, step
-and step estimate stay on the device and are reduced there to the scalars this loop reads (reductions.py;
-``fem_device_reductions_gpu``); the step estimate is solved to a loose tolerance within a larger cap instead of running
-into its cap and being thrown away, with friction's lag then moved at a closer remaining step (friction_lag.py
-``LAG_MOVE_RATIOS``; ``fem_step_estimate``); the line search's energy and det F replay CUDA graphs (replay.py;
-``fem_graph_replay_gpu``), and so do the gradient and Hessian assembly (0.90-0.93x on an H200,
-``fem_gradient_hessian_replay_gpu``).
-
-Issue 12, seventh pass (contact_prediction.py; BENCHMARKS.md ``fem_contact_prediction_gpu``): on a release the gel
-springs back into the lifting indenter, and the full Newton steps, which see the contact only where it is at u, went
-into the indenter and were cut back by the line search (press_slide's release frame: 24-29 Newton iterations). On
-steps that lift an indenter, a refused full step is now solved again with the contact it predicts (a primal-dual active
-set step on the penalty term): the release frame takes 12-13, press_slide's median per frame falls from 15.5 to 12.5-13,
-and its time per frame is unchanged within the runs' spread on an H100.
-
-Issue 12, eighth pass (BENCHMARKS.md ``fem_folded_reads_gpu``): the GPU was busy for 62 % of press_slide's frames, the
-host reading a device scalar 13 times per Newton iteration, each read draining the GPU. A pass now reads the gradient's
-norm with the barrier's energy, friction's lag distance and, on a GPU, the contact side subset's coverage and E where
-the line search needs it (``_read_gradient``); a device step's slope and length, and a step estimate's length, come
-with the CG's state (``LinearSolver.known_summary``): 6.4 reads per Newton iteration, frames 0.74-0.87x the time on an
-H100 (about 0.13-0.16 s), the Newton iterations within the runs' spread.
-
-Issue 12, ninth pass (scripts/fem_gpu_gaps.py; BENCHMARKS.md ``fem_host_operations_gpu``): the GPU still waited for the
-host about a fifth of each frame, spread over many host operations of 60-150 us each. The gradient's reductions and
-what is read with them are replayed as one graph into kept buffers (``_read_gradient``), a trial point is one launch
-(``_set_trial``), a solve's set-up, friction's lag update, the largest penetration and the frame's wrench are graphs
-too (device_linear.py, contact_records.py), the gradient is one graph and the line-search trial another (assembly.py),
-a solve's limits are copied in by the CG's graph from pinned memory (definite_cg.py), and solutions go into kept arrays
-(device_linear.py ``SOLUTIONS``): press_slide frames 1-9 0.91-0.94x the time with the gradient read, the trial point,
-a solve's set-up and the wrench changed (one lease, 0.103-0.107 s per frame), 0.71-0.89x with the contact records too
-(a slower lease), then a median of about 0.96x with the rest (0.100-0.110 s per frame, a median of 0.105 s).
-
-Issue 12, tenth pass (BENCHMARKS.md ``fem_launches_folded_gpu``): the device CG's graph takes a solve's right-hand side
-and sets x = 0 itself (definite_cg.py ``fixed``), the accepted trial is copied into u by the next gradient's graph
-(``take_trial``), the trial point is launched in the trial's graph, reading du's row among the kept solutions and alpha
-at each replay (trial_point.py ``_try_step``), and a frame's records are launched together, then read (solver.py): 2.0
-instead of 4.6 one-by-one launches per Newton iteration, 5 % less host time outside the reads, the frames within their
-spread (a median of 0.107 s, as the tree before alternated with them).
-
-Issue 12, eleventh pass (BENCHMARKS.md ``fem_force_forcing_gpu``): where the scenes' force test ends Newton, the last
-systems of a load step were solved to relative residuals of 1e-3 to 1e-4 (the forcing term |g| / |g_first|, and the
-refinement to ``cg_tol`` for the step-length test) at a force left of only a few times the test's bound, which a step
-solved to a residual of half the bound already meets. Each system is now solved no tighter than the force test needs
-(convergence_tests.py ``_force_forcing``): press_slide's Newton systems 0.65x the CG iterations, frames 1-9 0.85x
-the time (14 alternated pairs on an H100, a median of 0.092 s per frame), 122-132 Newton iterations against 122-126,
-the markers as close to a lag-converged, step-length-tested reference as before.
-
-Issue 12, twelfth pass (BENCHMARKS.md ``fem_no_progress_gpu``): next to elements flattened towards det F = 0 Newton
-could creep along the inversion barrier for its whole iteration cap, |g| growing by orders of magnitude, without the 10
-short line searches in a row that give a step up. A (sub)step that can still be halved is now also given up after 30
-steps since its lowest |g| (convergence_tests.py ``StallWatch``): on train_random over 120 sequences (an H100) 1
-step reached the cap against 6, the slowest frame 8.0-11.0 s of physics against 14.9-27.2 s.
+What each part replaced, and the measurements behind it (issue 12's twelve passes): docs/fem_newton_history.md.
 """
 
 from __future__ import annotations
