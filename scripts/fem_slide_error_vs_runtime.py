@@ -1,5 +1,5 @@
 """FEM error against run time on a press-and-slide scene with friction: contact mesh size x lag moves x load steps x
-Newton's force test.
+Newton's force test x friction's smoothing.
 
     .venv/bin/python scripts/fem_slide_error_vs_runtime.py [--scene scenes/press_slide.toml] [--frames 10]
         [--settings 1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4] [--reference 0.3/4] [--device cpu|cuda]
@@ -98,7 +98,8 @@ def parse_setting(text: str) -> Setting:
                           float(parts[4]) if len(parts) == 5 else None)
     except ValueError:
         raise typer.BadParameter(f"{text!r}: expected EDGE/LAGS, EDGE/LAGS/SPLIT, EDGE/LAGS/SPLIT/RTOL or "
-                                 "EDGE/LAGS/SPLIT/RTOL/SLIP, e.g. 0.8/4, 0.8/4/2, 0.8/4/1/1e-3 or 0.8/4/1/-/0.2") from None
+                                 "EDGE/LAGS/SPLIT/RTOL/SLIP, e.g. 0.8/4, 0.8/4/2, 0.8/4/1/1e-3 or "
+                                 "0.8/4/1/-/0.2") from None
     if setting.edge_mm <= 0 or setting.lag_moves < 1 or setting.split < 1:
         raise typer.BadParameter(f"{text!r}: EDGE must be > 0 mm, LAGS and SPLIT >= 1")
     if setting.force_rtol is not None and not 0.0 <= setting.force_rtol <= 0.1:
@@ -199,7 +200,8 @@ def summary(row: dict) -> dict:
 
 def plot(rows: list[dict], path: Path, title: str) -> None:
     """Marker error (RMS and largest) against physics seconds per frame, one line per (lag moves, split, force
-    test)."""
+    test, friction's smoothing: named in the legend where the rows differ in it), each point marked with its contact
+    edge."""
     import matplotlib
     import matplotlib.ticker
 
@@ -207,6 +209,7 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     rows = [r for r in rows if "failed" not in r]
+    slips_differ = len({line_of(r)[3] for r in rows}) > 1
     fig, axes = plt.subplots(1, 2, figsize=(10, 5.2), dpi=90)
     for ax, key, label in ((axes[0], "marker_rms_mm", "marker error, RMS over frames and markers (mm)"),
                            (axes[1], "marker_max_mm", "marker error, largest (mm)")):
@@ -215,9 +218,10 @@ def plot(rows: list[dict], path: Path, title: str) -> None:
                          if line_of(r) == (lags, split, rtol, slip))
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", ms=5, lw=0.8,
                     label=f"{lags} lag move(s) a step" + (f", frames split in {split}" if split > 1 else "")
-                    + (f", force test {rtol:g}" if rtol else "") + (f", slip {slip:g} mm" if slip else ""))
+                    + (f", force test {rtol:g}" if rtol else "")
+                    + (f", slip {slip:g} mm" if slip and slips_differ else ""))
             for t, e, h in pts:
-                ax.annotate(f"{h:g} mm", (t, e), fontsize=7, xytext=(3, 3), textcoords="offset points")
+                ax.annotate(f"edge {h:g} mm", (t, e), fontsize=7, xytext=(3, 3), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_yscale("log")
         for axis in (ax.xaxis, ax.yaxis):  # 1, 2 and 5 times powers of ten: a decade or less is on most axes here
@@ -283,8 +287,8 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
 
 
 def line_of(row: dict) -> tuple[int, int, float, float]:
-    """A row's plotted line: (lag moves, split, force test rtol; 0 off, friction's smoothing in mm; 0 where the row
-    does not say). Rows of runs before the force test or the smoothing was an axis have none."""
+    """A row's plotted line: (lag moves, split, the force test's rtol, friction's smoothing in mm). The rtol is 0 where
+    the test was off; rtol and smoothing are 0 in rows of runs made before they were axes."""
     return row["lag_moves"], row["split"], row.get("force_rtol") or 0.0, row.get("slip_mm") or 0.0
 
 
@@ -316,7 +320,8 @@ def report(data: dict, name: str) -> str:
                          f"failed: {r['failed']} |" + " |" * 8)
             continue
         cells = [f"{r['edge_mm']:g}" + (" (reference)" if r is ref else ""), str(r["lag_moves"]), str(r["split"]),
-                 rtol_cell(r), slip_cell(r), str(r["tets"]), str(r["dofs"]), f"{r['s_frame']:.2f}; {mean_seconds(r):.2f}",
+                 rtol_cell(r), slip_cell(r), str(r["tets"]), str(r["dofs"]),
+                 f"{r['s_frame']:.2f}; {mean_seconds(r):.2f}",
                  f"{r['iterations_median']:g}; {', '.join(map(str, r['iterations']))}",
                  ", ".join(map(str, r["substeps"]))]
         cells += ["-"] * 4 if r is ref else [
@@ -325,7 +330,8 @@ def report(data: dict, name: str) -> str:
             ", ".join(f"{e:.3f}" for e in r["marker_max_per_frame_mm"]), f"{r['force_max_pct']:.2f}"]
         lines.append("| " + " | ".join(cells) + " |")
     changed = (f"every indenter's friction set to {meta['friction']:g}, " if meta["friction"] is not None else "") + (
-        f"friction_slip_mm {meta['slip_mm']:g}, " if meta["slip_mm"] is not None else "") + (
+        f"friction_slip_mm {meta['slip_mm']:g} where a setting gives no SLIP, " if meta["slip_mm"] is not None
+        else "") + (
         "" if meta.get("friction_memory", False) else "friction's sticking stretch not carried from step to step, ")
     return "\n".join([
         f"Machine: {meta['machine']}. Command: `{meta['command'].strip()}` ({meta['minutes']:.0f} min in all; load "

@@ -28,8 +28,13 @@ def test_settings_parse_and_refuse_what_they_cannot_be():
     assert study.parse_setting("0.8/1/1/-/0.2") == study.Setting(0.8, 1, 1, None, 0.2)  # the scene's force test
     assert study.parse_setting("0.8/1/1/0/0.2") == study.Setting(0.8, 1, 1, 0.0, 0.2)
     assert study.Setting(0.8, 1, 1, None, 0.2).label() == "0.8/1/1/-/0.2"
-    for bad in ("0.8", "0.8/4/2/1", "0.8/4/2/-1e-3", "0.8/4/1/1e-3/2", "0.8/4/1/-/0", "0.8/4/1/-/0.1/1", "a/4", "0/4",
-                "0.8/0", "0.8/4/0"):
+    for setting in (study.Setting(0.8, 4), study.Setting(0.65, 1, 2), study.Setting(0.8, 4, 1, 1e-3),
+                    study.Setting(0.8, 1, 1, None, 0.2), study.Setting(0.8, 1, 2, 0.0, 0.1)):
+        assert study.parse_setting(setting.label()) == setting
+    with pytest.raises(typer.BadParameter, match="SLIP must be within"):
+        study.parse_setting("0.8/4/1/1e-3/2")
+    for bad in ("0.8", "0.8/4/2/1", "0.8/4/2/-1e-3", "0.8/4/1/-/0", "0.8/4/1/-/0.1/1", "a/4", "0/4", "0.8/0",
+                "0.8/4/0"):
         with pytest.raises(typer.BadParameter):
             study.parse_setting(bad)
 

@@ -89,7 +89,8 @@ class Physics(_Strict):
         default=0.05, gt=0.0, le=1.0, description="friction smoothing: a sticking point moves up to this far against "
         "the indenter (an elastic stretch, kept from frame to frame) before friction reaches mu times the pressure "
         "(0.01: stricter sticking, about 1.5x the Newton iterations; 0.2: on train_random 0.9x the Newton iterations, "
-        "its markers moved by up to 0.33 mm; BENCHMARKS.md fem_friction_smoothing_train_random_gpu)")
+        "its markers moved by up to 0.33 mm and its forces by up to 47 %; BENCHMARKS.md "
+        "fem_friction_smoothing_train_random_gpu)")
     friction_lag_moves: int = Field(
         default=4, ge=1, le=50, description="friction's normal pressure and tangent plane are lagged and moved to "
         "the current state at most this often per load step: on press_slide 4 match a converged lag's friction forces "
