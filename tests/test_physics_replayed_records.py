@@ -125,8 +125,9 @@ def test_the_trial_graph_reads_the_step_and_alpha_it_is_given(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_frame_records_launched_together_equal_each_read_on_its_own(device):
-    """solver.py ``_frame_records``: friction's lag residual, the wrench and the smallest det F launched together and
-    then read equal each launched and read on its own (no launch overwrites what another reads), for changed states."""
+    """load_stepping.py ``_frame_records``: friction's lag residual, the wrench and the smallest det F launched together
+    and then read equal each launched and read on its own (no launch overwrites what another reads), for changed
+    states."""
     solver, ind = _pressed_solver(device=device)
     u0 = solver.u.dof_values.numpy().copy()
     for scale in (1.0, 0.9, 0.95):  # launched, captured, then replayed

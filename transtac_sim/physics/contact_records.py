@@ -3,9 +3,9 @@ provides the quadratures, fields, contact state and indenter structs; assembly.p
 lagged pressure and tangent plane (``_update_lag``) and the force imbalance the lag leaves
 (``_launch_friction_lag_residual``), friction's stretch carried into the next step (``_keep_stick``), the largest
 penetration (``_max_penetration``) and the indenters' wrench (``_launch_wrench``, ``_read_wrench``; the frame's records
-are launched together and then read, solver.py ``solve_frame``). On a GPU each is replayed as a CUDA graph per field,
-indenter struct and contact stiffness (replay.py) into kept arrays: each warp.fem integration or interpolation costs
-about half a millisecond of host work when launched on its own (press_slide on an H100: the frame's wrench was 6
+are launched together and then read, load_stepping.py ``solve_frame``). On a GPU each is replayed as a CUDA graph per
+field, indenter struct and contact stiffness (replay.py) into kept arrays: each warp.fem integration or interpolation
+costs about half a millisecond of host work when launched on its own (press_slide on an H100: the frame's wrench was 6
 integrations and 6 reads, now one graph and one read; BENCHMARKS.md ``fem_host_operations_gpu``).
 """
 

@@ -3,12 +3,13 @@ snapshot and restore.
 
 A frame moves the indenters from the last poses to new ones (4x4, indenter frame -> gel frame, mm). Its motion is
 solved as load (sub)steps (newton.py ``_solve_step``), the poses interpolated between the two (translation linearly,
-rotation by slerp). A step that does not converge (or creeps: convergence_tests.py ``StallWatch``), ends out of
-equilibrium (|gradient| above ``max_residual_n``) or leaves a penetration above ``penetration_tol_mm`` is retried with
-half the pose increment from the last converged sub-step, and the rest of the frame goes on in steps of that size
-(adaptive load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame); past that, ``SolverDidNotConverge``
-says which frame, which indenters and what was tried, and the solver is back at the frame's start. Nothing
-half-solved is ever returned.
+rotation by slerp). A step that does not converge (or, where it can still be halved, creeps: convergence_tests.py
+``StallWatch``), ends out of equilibrium (|gradient| above ``max_residual_n``) or leaves a penetration above
+``penetration_tol_mm`` is retried with half the pose increment from the last converged sub-step, and the rest of the
+frame goes on in steps of that size (adaptive load sub-stepping, down to 1/2**``max_substep_halvings`` of the frame);
+past that, ``SolverDidNotConverge`` says which frame, which indenters and what was tried, and u and friction's stretch
+are put back as they were at the frame's start (the contact stiffness keeps any raise, and the warm start's last
+increment is that of the last converged sub-step). Nothing half-solved is ever returned.
 """
 
 from __future__ import annotations

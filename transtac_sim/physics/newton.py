@@ -1,14 +1,15 @@
 """Newton for one quasi-static (sub)step, as a mixin of ``QuasiStaticSolver`` (solver.py).
 
-E(u), the gel's elastic energy with the inversion barrier, the penalty contact and friction with its normal pressure
-and tangent plane lagged (assembly.py, contact.py), is minimised over the free displacement dofs (mm) for the
-indenters' poses of the (sub)step. Each Newton iteration takes the exact Hessian, or the clamped or Gauss-Newton one
-where it is not positive definite (``_hessian_ladder``), solves its system inexactly (``FORCING_MAX``, ``EXACT_BELOW``)
-and backtracks along the step (Armijo on E, a quadratic-interpolation cut) without ever accepting det F <= 0. Inside the
-loop friction's lag moves (friction_lag.py), the contact stiffness rises at convergence (``_raise_stiffness``), and on
-releases a refused full step is solved again with the contact it predicts (contact_prediction.py); it starts from the
-warm start (warm_start.py) and ends by the convergence tests, or gives the step up (convergence_tests.py). ``_newton``
-says how the pieces fit together.
+E(u), the gel's elastic energy with the inversion barrier, the penalty contact and friction with its normal pressure and
+tangent plane lagged (assembly.py, contact.py), is minimised over the free displacement dofs (mm) for the indenters'
+poses of the (sub)step. Each Newton iteration takes the exact Hessian, or the clamped or Gauss-Newton one where it is
+not positive definite or gives no descent step (``_hessian_ladder``), solves its system inexactly (``FORCING_MAX``,
+``EXACT_BELOW``) and backtracks along the step (Armijo on E, a quadratic-interpolation cut) without ever accepting det F
+<= 0. Inside the loop friction's lag moves (friction_lag.py), the contact stiffness rises at convergence
+(``_raise_stiffness``), and on releases a refused full step is solved again with the contact it predicts
+(contact_prediction.py); it starts from the warm start (warm_start.py) and ends by the convergence tests, or gives the
+step up: at the iteration cap or where it creeps (convergence_tests.py), where the line search fails or no Hessian gives
+a descent direction (``_newton``, which says how the pieces fit together).
 
 What each part replaced, and the measurements behind it (issue 12's twelve passes): docs/fem_newton_history.md.
 """

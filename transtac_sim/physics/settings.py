@@ -1,5 +1,5 @@
 """The quasi-static solver's settings, per-frame record and result, and its errors (used by solver.py,
-newton.py and trajectory.py; importable from ``transtac_sim.physics``)."""
+load_stepping.py, newton.py and trajectory.py; importable from ``transtac_sim.physics``)."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ class SolverSettings:
     # 2-core CPU, no case needed a sub-step (up to 4 with 40), and a marginal slide that failed at every sub-step
     # with 40 converged (BENCHMARKS.md ``fem_host_newton_cap``)
     max_newton_iterations: int | None = None
-    max_substep_halvings: int = 5  # the smallest sub-step: 1/2**5 of the frame's motion (solver.py)
+    max_substep_halvings: int = 5  # the smallest sub-step: 1/2**5 of the frame's motion (load_stepping.py)
     # "direct" (CHOLMOD/SuperLU on the host), "cg" (Warp, on the device); "auto": cg on a GPU, else direct
     # (on an H100, cg solves the press-and-slide frames about 20x faster than the host factorisation)
     linear_solver: str = "auto"
@@ -61,7 +61,8 @@ class SolverSettings:
     barrier_det_f: float = 0.1
     barrier_stiffness: float = 10.0
     # a (sub)step that Newton ends with |gradient| (N, free dofs) above this is not taken as converged but halved
-    # (solver.py): converged frames end at 1e-7 to 1e-3 N, and one train_random frame had been written with 1.58e3 N
+    # (load_stepping.py): converged frames end at 1e-7 to 1e-3 N, and one train_random frame had been written with
+    # 1.58e3 N
     # (BENCHMARKS.md ``fem_float64_fallback_gpu``). Newton's step below newton_tol_mm shows convergence only at
     # |gradient| up to this: near elements flattened towards det F = 0 the barrier makes that step tiny at any force
     # (convergence_tests.py ``_short_step_converges``, BENCHMARKS.md ``fem_short_step_gpu``)
@@ -94,8 +95,8 @@ class SolverSettings:
 
 @dataclass(frozen=True)
 class FailedStep:
-    """A load (sub)step that failed and was halved (solver.py): the frame's motion from ``start`` to ``end`` (fractions
-    of it), the Newton iterations it took and why it failed."""
+    """A load (sub)step that failed and was halved (load_stepping.py): the frame's motion from ``start`` to ``end``
+    (fractions of it), the Newton iterations it took and why it failed."""
 
     start: float
     end: float
@@ -117,7 +118,8 @@ class SolverRecord:
     # centroid J stays within 0.97-1.01 (scripts/fem_det_f_sites.py, BENCHMARKS.md fem_det_f_sites)
     min_det_f: float
     seconds: float
-    substeps: int  # load steps the frame was solved in (1: in one; more after a failed step was halved, solver.py)
+    # load steps the frame was solved in (1: in one; more after a failed step was halved, load_stepping.py)
+    substeps: int
     max_penetration_mm: float = 0.0
     linear_iterations: int = 0
     backtracks: int = 0  # line-search halvings, all (sub)steps of the frame
