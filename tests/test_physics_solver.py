@@ -618,8 +618,6 @@ def test_force_test_solves_each_system_no_tighter_than_it_needs(monkeypatch, lin
     tolerance of 1e-12 mm the step-length test cannot end this press: it ends within the force test's bound, with
     the normal force within 1e-3 of the frame solved without the floor (FORCE_FORCING = 0: every system asked for
     the forcing term and cg_tol), and in fewer linear iterations."""
-    from transtac_sim.physics import convergence_tests
-
     events = _newton_events(monkeypatch)
     settings = SolverSettings(linear_solver=linear_solver, newton_tol_mm=1e-12, max_newton_iterations=30,
                               newton_force_rtol=1e-3)

@@ -146,6 +146,6 @@ def _solve_with_fem(setup: SceneSetup, frames: int, clock) -> Iterator[PhysicsFr
             {"converged": bool(r.converged), "iterations": int(r.iterations), "residual": float(r.residual),
              "seconds": float(r.seconds), "min_det_f": float(r.min_det_f), "substeps": int(r.substeps),
              "friction_lag_residual_n": float(r.friction_lag_residual_n),
-             "failed_steps": [{"from": float(f.start), "to": float(f.end), "iterations": int(f.iterations),
-                               "why": str(f.why)} for f in r.failed_steps]},
+             "failed_steps": [{"from": float(s.start), "to": float(s.end), "iterations": int(s.iterations),
+                               "why": str(s.why)} for s in r.failed_steps]},
         )

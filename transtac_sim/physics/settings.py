@@ -62,8 +62,7 @@ class SolverSettings:
     barrier_stiffness: float = 10.0
     # a (sub)step that Newton ends with |gradient| (N, free dofs) above this is not taken as converged but halved
     # (load_stepping.py): converged frames end at 1e-7 to 1e-3 N, and one train_random frame had been written with
-    # 1.58e3 N
-    # (BENCHMARKS.md ``fem_float64_fallback_gpu``). Newton's step below newton_tol_mm shows convergence only at
+    # 1.58e3 N (BENCHMARKS.md ``fem_float64_fallback_gpu``). Newton's step below newton_tol_mm shows convergence only at
     # |gradient| up to this: near elements flattened towards det F = 0 the barrier makes that step tiny at any force
     # (convergence_tests.py ``_short_step_converges``, BENCHMARKS.md ``fem_short_step_gpu``)
     max_residual_n: float = 1.0
