@@ -5,7 +5,7 @@
 Runs the scene's first frames on the GPU, keeps the last Newton system the device CG solved (physics/device_linear.py),
 then:
 
-1. each kernel of a CG iteration (physics/definite_cg.py, coarse_space.py, sparse_product.py) launched 50 times in a
+1. each kernel of a CG iteration (physics/cg_kernels.py, coarse_space.py, sparse_product.py) launched 50 times in a
    CUDA graph, the graph replayed 20 times: microseconds per launch, back to back on the GPU. The matrix-vector
    product both ways: one 32-thread group per block row (``_block_row_product``, the CUDA product before
    BENCHMARKS.md ``fem_cg_unrolled_gpu``, and the CPU's) and the CUDA one (``_block_rows_product``: 8 rows of 16
@@ -34,7 +34,7 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 
 from transtac_sim.dataset.sequence import StageClock
-from transtac_sim.physics import definite_cg, device_linear, sparse_product
+from transtac_sim.physics import cg_kernels, definite_cg, device_linear, sparse_product
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
@@ -182,23 +182,23 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
     state = ws.state
     # set 0 going on, its r . z positive, p . q = 1e300 and the previous set's r . z 1e150: every kernel does its work
     # (alpha = 1e-150 and beta = r . z / 1e150 keep the vectors' sizes over the repeated launches)
-    values = np.zeros(definite_cg.STATE_SIZE)
-    values[[definite_cg.ACTIVE, definite_cg.PQ, definite_cg.RZ, 2 * definite_cg.SET_SIZE + definite_cg.RZ,
-            definite_cg.MAXITER]] = (1.0, 1e300, 1.0, 1e150, 1e9)
+    values = np.zeros(cg_kernels.STATE_SIZE)
+    values[[cg_kernels.ACTIVE, cg_kernels.PQ, cg_kernels.RZ, 2 * cg_kernels.SET_SIZE + cg_kernels.RZ,
+            cg_kernels.MAXITER]] = (1.0, 1e300, 1.0, 1e150, 1e9)
     state.assign(values)
 
     def step_precondition():  # set 0, as the first iteration of a pass
-        definite_cg.launch_step_precondition(ws, 0, x, M.inverse_blocks, coarse)
+        cg_kernels.launch_step_precondition(ws, 0, x, M.inverse_blocks, coarse)
 
     def coarse_product():
-        coarse.apply_inverse(state, definite_cg.RZ)
+        coarse.apply_inverse(state, cg_kernels.RZ)
 
     def step_p():
-        definite_cg.launch_p_update(ws, 0, coarse, first=False)
+        cg_kernels.launch_p_update(ws, 0, coarse, first=False)
 
     def iteration():
         A.matvec(p, q, q, 1.0, 0.0)
-        definite_cg.add_dot(p, q, state, definite_cg.PQ)
+        cg_kernels.add_dot(p, q, state, cg_kernels.PQ)
         step_precondition()
         if coarse:
             coarse_product()
@@ -212,7 +212,7 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
         print(f"{name}: largest difference from the library's product {np.abs(layout_out.numpy() - q.numpy()).max():.2e}"
               f" (its largest entry {np.abs(q.numpy()).max():.2e})")
     kernels |= layouts
-    kernels |= {"p . q": lambda: definite_cg.add_dot(p, q, state, definite_cg.PQ),
+    kernels |= {"p . q": lambda: cg_kernels.add_dot(p, q, state, cg_kernels.PQ),
                 "x, r update, z = M r, r . z, abs(r)^2" + (", P^T r" if coarse else ""): step_precondition}
     if coarse:
         kernels |= {"coarse: A_c^-1 P^T r": coarse_product}

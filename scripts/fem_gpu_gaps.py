@@ -41,8 +41,9 @@ from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.scene_setup import load_setup
 from transtac_sim.simulation import simulate_frames
 
-#: the solver's methods marked as host ranges (newton.py, trial_point.py, assembly.py, contact_records.py, solver.py,
-#: load_stepping.py, friction_lag.py, warm_start.py, contact_prediction.py; linear.py, device_linear.py)
+#: the solver's methods marked as host ranges (newton.py, trial_point.py, assembly.py, hessian_assembly.py,
+#: contact_records.py, solver.py, load_stepping.py, friction_lag.py, warm_start.py, contact_prediction.py; linear.py,
+#: device_linear.py)
 MARKED = {
     QuasiStaticSolver: ("solve_frame", "_solve_step", "_newton", "_read_gradient", "_gradient", "_set_trial",
                         "_launch_energy", "_energy", "_try_step", "_energy_and_min_det", "_hessian", "_contact_subset",

@@ -76,6 +76,7 @@ from warp.optim.linear import aslinearoperator, cg
 from transtac_sim.dataset.sequence import StageClock
 from transtac_sim.physics import (
     QuasiStaticSolver,
+    cg_kernels,
     contact_sides,
     convergence_tests,
     definite_cg,
@@ -234,8 +235,8 @@ def main(scene: Path, device: str = typer.Option("cpu", help="cpu or cuda"),
         device_linear.block_row_operator = lambda H, **_: float64_operator(H)
     if warp_cg:
         device_linear.definite_cg = _warp_cg
-    if cg_unroll % definite_cg.SETS:
-        raise typer.BadParameter(f"--cg-unroll must be a multiple of {definite_cg.SETS}, got {cg_unroll}")
+    if cg_unroll % cg_kernels.SETS:
+        raise typer.BadParameter(f"--cg-unroll must be a multiple of {cg_kernels.SETS}, got {cg_unroll}")
     definite_cg.UNROLL = cg_unroll
     if fresh_cg_graphs:
         kept_cg = device_linear.definite_cg

@@ -42,7 +42,7 @@ import warp as wp
 from warp.sparse import bsr_mv
 
 from transtac_sim.config import load_scene
-from transtac_sim.physics import QuasiStaticSolver, definite_cg, device_linear, linear
+from transtac_sim.physics import QuasiStaticSolver, cg_kernels, device_linear, linear
 from transtac_sim.physics.device_linear import DeviceSolves
 from transtac_sim.physics.elasticity import CLAMPED, EXACT
 from transtac_sim.physics.warm_start import WarmStart
@@ -186,7 +186,7 @@ def _trace_curvature() -> None:
         if result.not_definite and last.get("exact") and "H" in last and workspace is not None:
             solver, p = last["solver"], workspace.p
             P = p.numpy()
-            if workspace.state.numpy()[definite_cg.STOP] != definite_cg.NOT_DEFINITE.value:  # at r . M r <= 0
+            if workspace.state.numpy()[cg_kernels.STOP] != cg_kernels.NOT_DEFINITE.value:  # at r . M r <= 0
                 print(f"    frame {solver.frame_index}: CG stopped where its preconditioner is not positive definite",
                       flush=True)
                 return result

@@ -128,8 +128,8 @@ def test_barrier_hessian_in_its_tets_equals_warp_fems_assembly(device, degree):
 
 
 def test_summed_hessian_adds_the_barrier_where_it_acts():
-    """The Newton matrix (assembly.py ``_hessian``) where the barrier acts in some tets equals the one without the
-    barrier plus warp.fem's assembly of the barrier's integrand over every tet (the exact Hessian, whose volumetric
+    """The Newton matrix (hessian_assembly.py ``_hessian``) where the barrier acts in some tets equals the one without
+    the barrier plus warp.fem's assembly of the barrier's integrand over every tet (the exact Hessian, whose volumetric
     part does not depend on where the barrier acts)."""
     with_barrier, without = _solver(SolverSettings()), _solver(SolverSettings(barrier_det_f=0.0))
     u = _squeezed_along_x(with_barrier)

@@ -8,7 +8,8 @@ import scipy.sparse.linalg as spla
 import warp as wp
 from pcg_reference import diagonal_block_inverses, pcg_iterate
 
-from transtac_sim.physics.definite_cg import CHECK_EVERY, UNROLL, CgWorkspace, definite_cg
+from transtac_sim.physics.cg_kernels import CgWorkspace
+from transtac_sim.physics.definite_cg import CHECK_EVERY, UNROLL, definite_cg
 from transtac_sim.physics.sparse_product import (
     BlockJacobi,
     block_row_operator,

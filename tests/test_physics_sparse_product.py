@@ -158,8 +158,8 @@ def _volumetric_reference(solver, geometric: float, clamp: bool) -> sp.csr_matri
 
 
 def test_summed_hessian_equals_the_sum_of_its_parts():
-    """assembly.py adds each Hessian part into one kept matrix: the volumetric part tet by tet, the others through
-    precomputed block places. The result equals scipy's sum of the parts (deviatoric, volumetric by warp.fem's
+    """hessian_assembly.py adds each Hessian part into one kept matrix: the volumetric part tet by tet, the others
+    through precomputed block places. The result equals scipy's sum of the parts (deviatoric, volumetric by warp.fem's
     generic assembly, contact with friction), and a second assembly overwrites the first instead of adding to it."""
     solver, ind = _pressed_solver()
     first = bsr_to_scipy(solver._hessian(ind, 1.0, False))

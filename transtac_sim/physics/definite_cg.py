@@ -17,41 +17,40 @@ This CG (Nocedal & Wright, Algorithm 5.3, with the curvature test of Algorithm 7
 M is block-Jacobi (sparse_product.py ``BlockJacobi``: the inverses of the 3x3 diagonal blocks), block-Jacobi plus a
 coarse correction on rigid-body modes of aggregates of nodes (``coarse``: coarse_space.py), or none. It runs on the
 device like ``warp.optim.linear.cg``, but with conditional CUDA graphs (CUDA 12.4+) the whole solve is one graph: the
-start (r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``_start``), the loop
-(``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the
-solve's tolerances, cap and start into pinned memory, which the graph copies in at its start, and reads the state
-once, at the end (one launch of the graph per solve, and a copy of b where it is not the workspace's own, unless the
-caller has the graph take b and set x = 0 itself: ``fixed``, device_linear.py's solves); without conditional
-graphs one pass of the loop is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is four
-launches, five with the coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z,
-|r|^2 and, with the coarse level, P^T r (``_step_precondition``: one thread group per aggregate, over its nodes), the
-coarse product A_c^-1 P^T r (which adds its part of r . z), and the update of p (which adds the coarse part of z) with
-the stop test done by its first thread (``_step_p``). The stop test and the p update share a launch because the
-iteration's sums live in one of three sets of state slots, taken in turn (iteration k uses set k mod 3, and reads the
-previous r . z from set k - 1): the test writes the next set's flag and clears its sums while the other threads still
-read this set's and the previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, a
-solve of press_slide's Newton system (H100) took 0.87-0.91x the time at the same CG iterations (a whole iteration
-46.1 instead of 48.9 us in scripts/bench_cg_kernels.py), and the device CG's phase 0.88-0.93x per call in its frames
-(BENCHMARKS.md ``fem_cg_fused_gpu``). The
-state (the three sets of the flag that the solve goes on, p . q, r . z and |r|^2; the tolerance, stop reason, iteration
-and iteration cap; at the end max |x|, its NaN count and x . b) is one small float64 array, so the iterations of a
-stopped solve change nothing (x, r and p keep their values). A pass of the captured loop therefore runs ``UNROLL``
-iterations (a multiple of 3, so that each pass starts at set 0), and a solve pays for at most UNROLL - 1 iterations
-after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time of 1
-(BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py), and 6 at most about 2 % less than 3 per
-solve from 0, while a short solve (a step estimate) pays for up to 5 iterations after its stop instead of 2
-(``fem_cg_fused_gpu``). Dot products are block-wise tile sums added atomically (round-off varies from run to run in
-the last bits, as the assembly's atomics already do).
+start (r, z, p, |b|^2, then the tolerance and the stop tests before the first iteration, ``start_state``), the loop
+(``wp.capture_while``) and max |x| at the end (reductions.py, copied into the state). The host writes only the solve's
+tolerances, cap and start into pinned memory, which the graph copies in at its start, and reads the state once, at the
+end (one launch of the graph per solve, and a copy of b where it is not the workspace's own, unless the caller has the
+graph take b and set x = 0 itself: ``fixed``, device_linear.py's solves); without conditional graphs one pass of the
+loop is captured and launched ``CHECK_EVERY`` times between host reads. An iteration is four launches, five with the
+coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z, |r|^2 and, with the coarse
+level, P^T r (cg_kernels.py ``_step_precondition``: one thread group per aggregate, over its nodes), the coarse product
+A_c^-1 P^T r (which adds its part of r . z), and the update of p (which adds the coarse part of z) with the stop test
+done by its first thread (``_step_p``). The stop test and the p update share a launch because the iteration's sums live
+in one of three sets of state slots, taken in turn (iteration k uses set k mod 3, and reads the previous r . z from set
+k - 1): the test writes the next set's flag and clears its sums while the other threads still read this set's and the
+previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, a solve of press_slide's Newton
+system (H100) took 0.87-0.91x the time at the same CG iterations (a whole iteration 46.1 instead of 48.9 us in
+scripts/bench_cg_kernels.py), and the device CG's phase 0.88-0.93x per call in its frames (BENCHMARKS.md
+``fem_cg_fused_gpu``). The state (the three sets of the flag that the solve goes on, p . q, r . z and |r|^2; the
+tolerance, stop reason, iteration and iteration cap; at the end max |x|, its NaN count and x . b) is one small float64
+array, so the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop
+therefore runs ``UNROLL`` iterations (a multiple of 3, so that each pass starts at set 0), and a solve pays for at most
+UNROLL - 1 iterations after its stop: on press_slide's Newton system (H100) 4 iterations a pass took 0.93-0.96x the time
+of 1 (BENCHMARKS.md ``fem_cg_unrolled_gpu``, scripts/bench_cg_kernels.py), and 6 at most about 2 % less than 3 per solve
+from 0, while a short solve (a step estimate) pays for up to 5 iterations after its stop instead of 2
+(``fem_cg_fused_gpu``). Dot products are block-wise tile sums added atomically (round-off varies from run to run in the
+last bits, as the assembly's atomics already do).
 
-A ``CgWorkspace`` keeps the work vectors (b copied into its own), the state and the last ``KEPT_GRAPHS`` captured
-graphs between solves of one size (a solver's Newton systems): a solve whose arrays are those of an earlier one (the
-operator's ``graph_key``, the preconditioner, x and, with ``fixed``, b) launches that solve's graph instead of capturing
-and instantiating its own (press_slide on an H100: one graph for all its frames, 0.87x the CG's time per solve;
-BENCHMARKS.md ``fem_cg_kept_graphs_gpu``; a second one since b is taken inside it, for the predicted contact's solves
-of a release frame, contact_prediction.py). The state
-is cleared at the start of every solve. Before the start moved into the graph, a solve read the state twice, and the
-GPU waited between the two reads while the host wrote the state of the first iteration and launched the loop
-(scripts/fem_host_census.py; BENCHMARKS.md ``fem_host_census_gpu``).
+A ``CgWorkspace`` (cg_kernels.py, with the state's layout and the kernels) keeps the work vectors (b copied into its
+own), the state and the last ``KEPT_GRAPHS`` captured graphs between solves of one size (a solver's Newton systems): a
+solve whose arrays are those of an earlier one (the operator's ``graph_key``, the preconditioner, x and, with ``fixed``,
+b) launches that solve's graph instead of capturing and instantiating its own (press_slide on an H100: one graph for all
+its frames, 0.87x the CG's time per solve; BENCHMARKS.md ``fem_cg_kept_graphs_gpu``; a second one since b is taken
+inside it, for the predicted contact's solves of a release frame, contact_prediction.py). The state is cleared at the
+start of every solve. Before the start moved into the graph, a solve read the state twice, and the GPU waited between
+the two reads while the host wrote the state of the first iteration and launched the loop (scripts/fem_host_census.py;
+BENCHMARKS.md ``fem_host_census_gpu``).
 """
 
 from __future__ import annotations
@@ -61,41 +60,35 @@ from dataclasses import dataclass
 import warp as wp
 from warp.optim.linear import LinearOperator
 
-from transtac_sim.physics.coarse_space import (
-    AGGREGATE_THREADS,
-    CoarseSpace,
-    group_range,
-    prolong,
-    restrict_node,
-    vec6d,
+from transtac_sim.physics.cg_kernels import (
+    ITER,
+    PQ,
+    RZ,
+    SET_SIZE,
+    SETS,
+    STOP,
+    STOPS,
+    TOL2,
+    X_MAX,
+    X_NANS,
+    XB,
+    CgWorkspace,
+    add_dot,
+    launch_p_update,
+    launch_step_precondition,
+    start_state,
+    take_b,
 )
-from transtac_sim.physics.reductions import free_part, launch_max_abs, reduction_buffer
+from transtac_sim.physics.coarse_space import CoarseSpace
+from transtac_sim.physics.reductions import launch_max_abs
 from transtac_sim.physics.sparse_product import BlockJacobi
 
 CHECK_EVERY = 3  # host path without conditional graphs: passes of the loop (UNROLL iterations each) between reads
 UNROLL = 3  # iterations per pass of the loop (a multiple of SETS)
-DOT_BLOCKS = 256  # thread blocks of a dot product (each strides over the vector)
-DOT_THREADS = 256
 #: CUDA graphs a workspace keeps, one per solve's arrays (the least recently used dropped first): device_linear.py's
 #: solves take b from Newton's right-hand side or a predicted contact's (contact_prediction.py), with the float32 or
 #: float64 product
 KEPT_GRAPHS = 4
-
-# the state array: SETS sets of an iteration's slots (iteration k uses set k mod SETS: whether it goes on, and its sums
-# p . q, r . z and |r|^2), then the solve's (X_MAX, X_NANS: max |x| over entries and components at the end, and the
-# entries with a NaN; XB: x . b at the end)
-SETS = wp.constant(3)
-ACTIVE, PQ, RZ, RR = (wp.constant(k) for k in range(4))
-SET_SIZE = wp.constant(4)
-TOL2, STOP, ITER, MAXITER, X_MAX, X_NANS, XB = (wp.constant(SETS * SET_SIZE + k) for k in range(7))
-# the limits array: rtol^2, atol^2, the iteration cap (read by ``_start``), then whether x = 0 first (``_take_b``)
-LIMITS = 4
-FROM_ZERO = wp.constant(3)
-STATE_SIZE = SETS * SET_SIZE + 7
-vec8d = wp.types.vector(length=8, dtype=wp.float64)
-# why it stopped (the STOP slot)
-_STOPS = (1.0, 2.0, 3.0, 4.0)
-CONVERGED, NOT_DEFINITE, PRECONDITIONER_NOT_DEFINITE, ITERATION_CAP = (wp.constant(wp.float64(k)) for k in _STOPS)
 
 
 @dataclass(frozen=True)
@@ -105,202 +98,6 @@ class CgResult:
     iterations: int
     x_max: float  # max |x| over its entries and components at the end (NaN where an entry is NaN)
     x_dot_b: float  # x . b at the end (Newton's slope along its step, with b = -g: newton.py)
-
-
-@wp.kernel(enable_backward=False)
-def _dot(a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.vec3d), state: wp.array(dtype=wp.float64), slot: int,
-         blocks: int):
-    block, lane = wp.tid()
-    partial = wp.float64(0.0)
-    for i in range(block * wp.block_dim() + lane, a.shape[0], blocks * wp.block_dim()):
-        partial += wp.dot(a[i], b[i])
-    total = wp.tile_sum(wp.tile(partial))
-    if lane == 0:
-        wp.atomic_add(state, slot, total[0])
-
-
-@wp.func
-def _previous(set_: int):
-    """The first slot of the set before ``set_`` (the previous iteration's: its r . z is this one's previous r . z)."""
-    return SET_SIZE * ((set_ + SETS - 1) % SETS)
-
-
-@wp.kernel(enable_backward=False)
-def _step_precondition(state: wp.array(dtype=wp.float64), set_: int, p: wp.array(dtype=wp.vec3d),
-                       q: wp.array(dtype=wp.vec3d), inverse: wp.array(dtype=wp.mat33d), precondition: int,
-                       x: wp.array(dtype=wp.vec3d), r: wp.array(dtype=wp.vec3d), z: wp.array(dtype=wp.vec3d),
-                       members: wp.array(dtype=int), starts: wp.array(dtype=int), arm: wp.array(dtype=wp.vec3d),
-                       free: wp.array(dtype=wp.vec3d), restricted: wp.array(dtype=wp.float64)):
-    """x += alpha p, r -= alpha q (alpha = r.z (previous set) / p.q), z = M r (block-Jacobi), and the sums r . z and
-    |r|^2 into set ``set_``; one thread group per aggregate of the coarse level (``members``, ``starts``), which also
-    writes its part of P^T r into ``restricted``, or per ``AGGREGATE_THREADS`` nodes without it (``members``,
-    ``starts``, ``arm``, ``free`` and ``restricted`` empty). The
-    coarse level's part of z is added where p is updated (``_step_p``) and its part of r . z by the coarse product."""
-    group, lane = wp.tid()
-    now = SET_SIZE * set_
-    step = state[now + ACTIVE] != wp.float64(0.0) and state[now + PQ] > wp.float64(0.0)
-    alpha = wp.float64(0.0)
-    if step:
-        alpha = state[_previous(set_) + RZ] / state[now + PQ]
-    nodes = group_range(starts, group, x.shape[0])
-    sums = vec8d()  # r . z, |r|^2, P^T r
-    for k in range(nodes[0] + lane, nodes[1], wp.block_dim()):
-        i = k
-        if members.shape[0] > 0:
-            i = members[k]
-        ri = r[i]
-        if step:
-            x[i] = x[i] + alpha * p[i]
-            ri = ri - alpha * q[i]
-            r[i] = ri
-        zi = ri
-        if precondition != 0:
-            zi = inverse[i] * ri
-        z[i] = zi
-        v = vec6d()
-        if restricted.shape[0] > 0:
-            v = restrict_node(arm[i], free[i], ri)
-        sums += vec8d(wp.dot(ri, zi), wp.dot(ri, ri), v[0], v[1], v[2], v[3], v[4], v[5])
-    total = wp.tile_sum(wp.tile(sums, preserve_type=True))[0]
-    if lane == 0:
-        wp.atomic_add(state, now + RZ, total[0])
-        wp.atomic_add(state, now + RR, total[1])
-        if restricted.shape[0] > 0:
-            for c in range(6):
-                restricted[6 * group + c] = total[2 + c]
-
-
-@wp.func
-def _decide(state: wp.array(dtype=wp.float64), now: int, following: int, condition: wp.array(dtype=wp.int32)):
-    """After an iteration's updates (its sums in set ``now``): the stop reason, the iteration count and whether to go on
-    (the ``following`` set's flag, whose sums are cleared for the next iteration)."""
-    going = wp.float64(0.0)
-    if state[now + ACTIVE] != wp.float64(0.0):
-        state[ITER] = state[ITER] + wp.float64(1.0)
-        if not state[now + PQ] > wp.float64(0.0):
-            state[STOP] = NOT_DEFINITE
-        elif state[now + RR] <= state[TOL2]:
-            state[STOP] = CONVERGED
-        elif not state[now + RZ] > wp.float64(0.0):
-            state[STOP] = PRECONDITIONER_NOT_DEFINITE
-        elif state[ITER] >= state[MAXITER]:
-            state[STOP] = ITERATION_CAP
-        if state[STOP] == wp.float64(0.0):
-            going = wp.float64(1.0)
-    state[following + ACTIVE] = going
-    state[following + PQ] = wp.float64(0.0)
-    state[following + RZ] = wp.float64(0.0)
-    state[following + RR] = wp.float64(0.0)
-    condition[0] = wp.where(going != wp.float64(0.0), 1, 0)
-
-
-@wp.kernel(enable_backward=False)
-def _step_p(state: wp.array(dtype=wp.float64), set_: int, z: wp.array(dtype=wp.vec3d), p: wp.array(dtype=wp.vec3d),
-            arm: wp.array(dtype=wp.vec3d), free: wp.array(dtype=wp.vec3d), aggregate: wp.array(dtype=int),
-            values: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32), first: int):
-    """p = z + (r . z) / (r . z)_previous p, or p = z before the first iteration (``first``); with a coarse level
-    (``values`` = A_c^-1 P^T r not empty) z is block-Jacobi's part and P values is added here. Thread 0 then runs the
-    stop test (``_decide``; not before the first iteration): it writes only the next set, which no thread reads here."""
-    i = wp.tid()
-    zi = z[i]
-    if values.shape[0] > 0:
-        zi = zi + prolong(arm, free, aggregate, values, i)
-    if first != 0:
-        p[i] = zi
-        return
-    now = SET_SIZE * set_
-    rz = state[now + RZ]
-    if state[now + ACTIVE] != wp.float64(0.0) and state[now + PQ] > wp.float64(0.0) and rz > wp.float64(0.0):
-        p[i] = zi + (rz / state[_previous(set_) + RZ]) * p[i]
-    if i == 0:
-        _decide(state, now, SET_SIZE * ((set_ + 1) % SETS), condition)
-
-
-@wp.kernel(enable_backward=False)
-def _take_b(b: wp.array(dtype=wp.vec3d), fixed: wp.array(dtype=wp.vec3d), into: wp.array(dtype=wp.vec3d),
-            x: wp.array(dtype=wp.vec3d), limits: wp.array(dtype=wp.float64)):
-    """The solve's own right-hand side ``into`` = (I - P) b, P the diagonal 0/1 mask of the ``fixed`` components, and
-    x = 0 where the limits say so (``FROM_ZERO``, written by the host for each solve): a solve's first launch, inside
-    its graph."""
-    i = wp.tid()
-    into[i] = free_part(b[i], fixed[i])
-    if limits[FROM_ZERO] != wp.float64(0.0):
-        x[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-
-
-@wp.kernel(enable_backward=False)
-def _start(state: wp.array(dtype=wp.float64), limits: wp.array(dtype=wp.float64), condition: wp.array(dtype=wp.int32)):
-    """After the set-up's sums (|r|^2 and r . z into the last set, |b|^2 -> TOL2): the tolerance max(rtol^2 |b|^2,
-    atol^2), the stop where r is within it already (converged) or r . M r <= 0 (M not positive definite), otherwise the
-    state of the first iteration (set 0 going on, r . z kept in the last set as its previous one)."""
-    tol2 = wp.max(limits[0] * state[TOL2], limits[1])
-    last = (SETS - 1) * SET_SIZE
-    rz = state[last + RZ]
-    rr = state[last + RR]
-    for k in range(STATE_SIZE):
-        state[k] = wp.float64(0.0)
-    state[TOL2] = tol2
-    state[MAXITER] = limits[2]
-    if rr <= tol2:
-        state[STOP] = CONVERGED
-    elif not rz > wp.float64(0.0):
-        state[STOP] = PRECONDITIONER_NOT_DEFINITE
-    else:
-        state[last + RZ] = rz
-        state[ACTIVE] = wp.float64(1.0)
-    condition[0] = wp.where(state[ACTIVE] != wp.float64(0.0), 1, 0)
-
-
-def add_dot(a: wp.array, b: wp.array, out: wp.array, slot: int = 0) -> None:
-    """out[slot] += a . b (vec3d arrays; out float64 on their device) without a host read: block-wise tile sums added
-    atomically, as the CG's dot products."""
-    wp.launch_tiled(_dot, dim=[DOT_BLOCKS], block_dim=DOT_THREADS, device=a.device,
-                    inputs=[a, b, out, slot, DOT_BLOCKS])
-
-
-class CgWorkspace:
-    """``definite_cg``'s work vectors (b, r, z, p, q), state, limits and last captured CUDA graph, kept between
-    solves of ``n`` 3-vectors on ``device`` (a solver's matrices change arrays only when their sparsity does)."""
-
-    def __init__(self, n: int, device):
-        self.b, self.r, self.z, self.p, self.q = (wp.empty(n, dtype=wp.vec3d, device=device) for _ in range(5))
-        self.state = wp.zeros(STATE_SIZE, dtype=wp.float64, device=device)
-        self.limits = wp.zeros(LIMITS, dtype=wp.float64, device=device)  # rtol^2, atol^2, iteration cap, x = 0 first
-        # the limits as the host writes them (pinned on a GPU, so that the solve's graph copies them in at each replay)
-        self.limits_host = wp.zeros(LIMITS, dtype=wp.float64, device="cpu", pinned=wp.get_device(device).is_cuda)
-        self.x_max_work = reduction_buffer(2, device)  # max |x| and its NaN count at the end of a solve
-        self.condition = wp.zeros(1, dtype=wp.int32, device=device)
-        self.no_preconditioner = wp.empty(0, dtype=wp.mat33d, device=device)
-        self.no_nodes = wp.empty(0, dtype=int, device=device)
-        self.no_arms = wp.empty(0, dtype=wp.vec3d, device=device)
-        self.no_values = wp.empty(0, dtype=wp.float64, device=device)
-        # (the arrays a graph reads, the graph) by key: the operator's ``graph_key``, the preconditioner, x, the coarse
-        # inverse and, where the solve takes b itself (``definite_cg``'s ``fixed``), b and the mask
-        self.graphs: dict[tuple, tuple[tuple, object]] = {}
-        self.captures = 0  # graphs captured (the rest of the solves on CUDA launched a kept one)
-
-
-def launch_step_precondition(ws: CgWorkspace, set_: int, x: wp.array, inverse: wp.array,
-                             coarse: CoarseSpace | None) -> None:
-    """``_step_precondition`` on the workspace's vectors and x, its sums into set ``set_``: one thread group per
-    aggregate of ``coarse`` (which also sums P^T r into its ``restricted``), or per ``AGGREGATE_THREADS`` nodes without
-    it; ``inverse``: block-Jacobi's inverse blocks (empty: no preconditioner)."""
-    if coarse is not None:
-        groups, nodes = coarse.aggregates, (coarse.members, coarse.starts, coarse.arm, coarse.free, coarse.restricted)
-    else:
-        groups = (len(x) + AGGREGATE_THREADS - 1) // AGGREGATE_THREADS
-        nodes = (ws.no_nodes, ws.no_nodes, ws.no_arms, ws.no_arms, ws.no_values)
-    wp.launch_tiled(_step_precondition, dim=[groups], block_dim=AGGREGATE_THREADS, device=x.device,
-                    inputs=[ws.state, set_, ws.p, ws.q, inverse, int(inverse.shape[0] > 0), x, ws.r, ws.z, *nodes])
-
-
-def launch_p_update(ws: CgWorkspace, set_: int, coarse: CoarseSpace | None, first: bool) -> None:
-    """``_step_p`` on the workspace's vectors for set ``set_`` (the stop test included but where ``first``), adding the
-    coarse part of z where ``coarse`` is given."""
-    prolonged = (coarse.arm, coarse.free, coarse.aggregate, coarse.values) if coarse is not None else \
-        (ws.no_arms, ws.no_arms, ws.no_nodes, ws.no_values)
-    wp.launch(_step_p, dim=len(ws.p), device=ws.p.device,
-              inputs=[ws.state, set_, ws.z, ws.p, *prolonged, ws.condition, int(first)])
 
 
 def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxiter: int,
@@ -338,12 +135,12 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
         wp.copy(ws.limits, ws.limits_host)  # the host's tolerances and cap (pinned on a GPU: read at each replay)
         state.zero_()
         if fixed is not None:
-            wp.launch(_take_b, dim=len(b), device=device, inputs=[b, fixed, ws.b, x, ws.limits])
+            wp.launch(take_b, dim=len(b), device=device, inputs=[b, fixed, ws.b, x, ws.limits])
         A.matvec(x, ws.b, r, -1.0, 1.0)
         step_precondition(SETS - 1)
         launch_p_update(ws, SETS - 1, coarse, first=True)
         add_dot(ws.b, ws.b, state, TOL2)
-        wp.launch(_start, dim=1, device=device, inputs=[state, ws.limits, condition])
+        wp.launch(start_state, dim=1, device=device, inputs=[state, ws.limits, condition])
 
     def unrolled():  # iterations 0 .. UNROLL - 1 of a pass, with the sets 0, 1, 2, 0, ...
         for k in range(UNROLL):
@@ -408,6 +205,6 @@ def definite_cg(A: LinearOperator, b: wp.array, x: wp.array, rtol: float, maxite
                     wp.capture_launch(graph)
             finish()
     s = state.numpy()
-    converged, not_definite, not_definite_m, _ = _STOPS
+    converged, not_definite, not_definite_m, _ = STOPS
     return CgResult(bool(s[STOP] == converged), bool(s[STOP] in (not_definite, not_definite_m)), int(s[ITER]),
                     float("nan") if s[X_NANS] else float(s[X_MAX]), float(s[XB]))

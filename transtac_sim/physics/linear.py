@@ -94,7 +94,7 @@ class LinearSolver(DeviceSolves):
               tight: float | None = None) -> wp.array | None:
         """Returns du (wp.array of vec3d on the device; on the CG path one of device_linear.SOLUTIONS kept arrays,
         overwritten by the SOLUTIONS-th solution returned after it). ``H`` is changed: its fixed rows and columns are
-        projected out in place (the caller assembles it anew for each system, assembly.py). With
+        projected out in place (the caller assembles it anew for each system, hessian_assembly.py). With
         ``definite``: None where H is found not to be positive definite (CHOLMOD; CG does not converge).
         ``rtol``: CG's relative residual tolerance (default ``cg_tol``; Newton passes a looser one far from
         the solution, newton.py), continued to ``tight`` where the solution is below ``exact_below`` mm (an
@@ -153,9 +153,9 @@ class LinearSolver(DeviceSolves):
     def _free_matrix(self, H: BsrMatrix) -> sp.csc_matrix:
         """H's free rows and columns as a CSC matrix (every stored entry, zero or not). The first call for a sparsity
         finds where each of H's stored values goes (a matrix of their indices taken through the conversion and the
-        slicing); later calls, the same sparsity (assembly.py keeps it), only gather the values: on the tiny press fixture
-        (13.7k dofs, 2-core CPU, ``python -m cProfile scripts/fem_frame_timing.py tests/fixtures/tiny_press.toml``) about 7 ms
-        per solve against about 22 ms of conversion and slicing."""
+        slicing); later calls, the same sparsity (hessian_assembly.py keeps it), only gather the values: on the tiny
+        press fixture (13.7k dofs, 2-core CPU, ``python -m cProfile scripts/fem_frame_timing.py
+        tests/fixtures/tiny_press.toml``) about 7 ms per solve against about 22 ms of conversion and slicing."""
         nnz = int(H.offsets.numpy()[-1])
         columns = H.columns.numpy()[:nnz]
         cached = self._free_map

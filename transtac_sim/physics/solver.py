@@ -6,10 +6,10 @@ tet mesh, with u = 0 on the fixed components (default: every vertex with z <= to
 
 This module: the discretisation (Warp FEM spaces, quadratures, fixed dofs) and the indenters' structs. The frame API
 (start, a frame in load sub-steps halved where one fails, snapshot and restore) is in load_stepping.py; the assembly of
-E, its gradient and Hessian in assembly.py; the displacement at points inside the tets (markers) in
-point_displacement.py. The Newton iteration of one (sub)step is in newton.py: warm start from the extrapolated last
-increment, friction's lag and the contact stiffness updated inside Newton, a line search that never accepts an
-inverted element, and a convergence test on the estimated Newton step.
+E and its gradient in assembly.py, of its Hessian in hessian_assembly.py; the displacement at points inside the tets
+(markers) in point_displacement.py. The Newton iteration of one (sub)step is in newton.py: warm start from the
+extrapolated last increment, friction's lag and the contact stiffness updated inside Newton, a line search that never
+accepts an inverted element, and a convergence test on the estimated Newton step.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from transtac_sim.physics.assembly import Assembly
 from transtac_sim.physics.contact_prediction import ContactPrediction
 from transtac_sim.physics.contact_records import ContactRecords
 from transtac_sim.physics.contact_sides import ContactSides
+from transtac_sim.physics.hessian_assembly import HessianAssembly
 from transtac_sim.physics.indenter import RigidIndenter
 from transtac_sim.physics.linear import LinearSolver
 from transtac_sim.physics.load_stepping import LoadStepping
@@ -45,8 +46,8 @@ from transtac_sim.physics.settings import (  # noqa: F401 (re-exported: the solv
 from transtac_sim.physics.warm_start import WarmStart
 
 
-class QuasiStaticSolver(LoadStepping, Assembly, ContactRecords, NewtonSteps, WarmStart, ContactPrediction,
-                        PointDisplacement):
+class QuasiStaticSolver(LoadStepping, Assembly, HessianAssembly, ContactRecords, NewtonSteps, WarmStart,
+                        ContactPrediction, PointDisplacement):
     """Quasi-static hyperelastic gel pressed by rigid indenters; numpy in, numpy out.
 
     vertices_mm (N,3), tets (M,4); ``materials`` one ElasticMaterial or a list indexed by
@@ -103,7 +104,7 @@ class QuasiStaticSolver(LoadStepping, Assembly, ContactRecords, NewtonSteps, War
             n_det = self._q_det.total_point_count()
             self._F_det = wp.empty(n_det, dtype=wp.mat33d)
             self._b_det = wp.empty(n_det, dtype=wp.vec2d)
-            self._barrier_tets = wp.zeros(len(T), dtype=wp.int32)  # 1 where the barrier acts (assembly.py)
+            self._barrier_tets = wp.zeros(len(T), dtype=wp.int32)  # 1 where the barrier acts (hessian_assembly.py)
             n_contact = self._q_contact.total_point_count() * len(self.indenters)
             self._contact_state = contact.ContactState()
             for name, dtype in (("lag_g", wp.float64), ("lag_n", wp.vec3d), ("normal", wp.vec3d),

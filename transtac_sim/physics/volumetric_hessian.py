@@ -1,4 +1,4 @@
-"""The volumetric term's Hessian, assembled tet by tet into the summed Newton matrix (assembly.py).
+"""The volumetric term's Hessian, assembled tet by tet into the summed Newton matrix (hessian_assembly.py).
 
 E_vol = sum_tets V lam/2 (J - alpha)^2 with J = det F at one point per tet, the centroid (elasticity.py). With
 g_a the gradient of node a's basis function at the centroid and b_a = cof(F) g_a, the 3x3 block of nodes (a, b) is
