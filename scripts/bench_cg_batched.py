@@ -30,7 +30,7 @@ from warp.sparse import BsrMatrix, bsr_from_triplets
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_cg_kernels import _last_system  # noqa: E402
 
-from transtac_sim.physics import definite_cg, sparse_product  # noqa: E402
+from transtac_sim.physics import cg_kernels, definite_cg, sparse_product  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -71,7 +71,7 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
         M = sparse_product.BlockJacobi(Hk)
         b = wp.array(np.tile(rhs, (k, 1)), dtype=wp.vec3d, device=H.device)
         x = wp.zeros_like(b)
-        workspace = definite_cg.CgWorkspace(len(b), H.device)
+        workspace = cg_kernels.CgWorkspace(len(b), H.device)
         for rtol in (1e-2, 1e-4):
             seconds = []
             for _ in range(4):

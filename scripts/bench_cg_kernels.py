@@ -228,7 +228,7 @@ def main(scene: Path = typer.Argument(REPO / "scenes" / "press_slide.toml"), fra
         for round_, passes in ((k, passes) for k in range(1, rounds + 1) for passes in (3, 6)):
             definite_cg.UNROLL = passes
             for name, op in products.items():
-                workspace = definite_cg.CgWorkspace(n, device)
+                workspace = cg_kernels.CgWorkspace(n, device)
                 for rtol in (1e-2, 1e-4):
                     seconds = []
                     for _ in range(4):

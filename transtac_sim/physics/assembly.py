@@ -31,15 +31,16 @@ import warp.fem as fem
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
+from transtac_sim.physics.barrier_terms import BarrierCheckPoints
 from transtac_sim.physics.cg_kernels import add_dot
-from transtac_sim.physics.hessian_assembly import block_keys
 from transtac_sim.physics.reductions import (
     launch_extremes,
     launch_negated_free_and_load,
     read_extremes,
     read_negated_free,
 )
-from transtac_sim.physics.sparse_product import block_row_operator
+from transtac_sim.physics.sparse_product import block_keys, block_row_operator
+from transtac_sim.physics.volumetric_hessian import TetGeometry
 
 
 class DeviatoricTerm(NamedTuple):
@@ -49,7 +50,8 @@ class DeviatoricTerm(NamedTuple):
     c: wp.array  # int mu I : grad v, its gradient at u = 0 (vec3d per node)
     product: object  # H's matrix-vector product (sparse_product.py)
     work: wp.array  # a buffer like c
-    keys: np.ndarray  # row * ncol + column of each of H's blocks, in storage order: the sum's sparsity (``_sum_slots``)
+    # row * ncol + column of each of H's blocks, in storage order: the sum's sparsity (hessian_assembly.py ``_sum_slots``)
+    keys: np.ndarray
 
 
 class Assembly:
@@ -87,6 +89,18 @@ class Assembly:
                                   output_dtype=wp.vec3d)
             self._dev = DeviatoricTerm(H, c, block_row_operator(H), wp.empty_like(c), block_keys(H))
         return self._dev
+
+    def _tets(self) -> TetGeometry:
+        """The tets as the tet-by-tet terms see them (volumetric_hessian.py, barrier_terms.py), made on first use."""
+        if self._tet_geometry is None:
+            self._tet_geometry = TetGeometry.of(self._space, self.vertices_mm, self.tets)
+        return self._tet_geometry
+
+    def _barrier_check_points(self) -> BarrierCheckPoints:
+        """The barrier's tets and check points on the device (barrier_terms.py), made on first use."""
+        if self._barrier_points is None:
+            self._barrier_points = BarrierCheckPoints.make(self._tets(), self._q_det, self.device)
+        return self._barrier_points
 
     def _energy(self, u, ind) -> float:
         """E(u) (N mm): each term added into one device scalar (``self._energy_sum``), read once; on a GPU the
@@ -200,8 +214,8 @@ class Assembly:
 
     def contact_stale_read(self, flag: float) -> None:
         """The contact side subset's coverage flag (contact_sides.py ``launch_coverage``) at the last ``_gradient``'s
-        u, read by the caller with its own read: 0 lets ``_contact_subset`` keep the subset without reading the contact
-        state. Only on a GPU, where ``_gradient`` launches it."""
+        u, read by the caller with its own read: 0 lets ``_contact_subset`` (hessian_assembly.py) keep the subset
+        without reading the contact state. Only on a GPU, where ``_gradient`` launches it."""
         self._contact_stale = flag > 0.0
 
     def _elastic_gradient_terms(self) -> None:

@@ -25,13 +25,13 @@ a node, read at every CG iteration) and the nodes in order of their aggregate (`
 thread group sums an aggregate's part of P^T r without atomics. ``update`` forms A_c on the device (one thread per
 block row, its blocks' B_i^T H_ij B_j added atomically into a dense matrix) and inverts it on the host (Cholesky;
 LAPACK ``potrf``/``potri``): about 1,000 unknowns on the default gel with cell_mm = 3. The CG applies it on the device
-(definite_cg.py): P^T r where it updates r, then the inverse as a dense float32 product that also adds the coarse part
-of r . M r, (P^T r) . A_c^-1 P^T r (``apply_inverse``); P A_c^-1 P^T r is added where the CG updates p. On press_slide
-(H100) a CG iteration costs 1.7x and a Newton system takes 0.43x the iterations: the CG 0.7x the time, the frames
-1.22-1.35x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that carry nothing (an aggregate whose nodes are all
-fixed, rotations left out) are dropped from the inverse. Where A_c is not positive definite (H is not), ``update``
-keeps the last inverse: any positive definite A_c^-1 gives a positive definite M, and one made from an earlier
-Newton system of the same gel still captures its rigid motions.
+(definite_cg.py, its kernels in cg_kernels.py): P^T r where it updates r, then the inverse as a dense float32 product
+that also adds the coarse part of r . M r, (P^T r) . A_c^-1 P^T r (``apply_inverse``); P A_c^-1 P^T r is added where the
+CG updates p. On press_slide (H100) a CG iteration costs 1.7x and a Newton system takes 0.43x the iterations: the CG
+0.7x the time, the frames 1.22-1.35x faster (BENCHMARKS.md ``fem_coarse_level_gpu``). Modes that carry nothing (an
+aggregate whose nodes are all fixed, rotations left out) are dropped from the inverse. Where A_c is not positive
+definite (H is not), ``update`` keeps the last inverse: any positive definite A_c^-1 gives a positive definite M, and
+one made from an earlier Newton system of the same gel still captures its rigid motions.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ vec6d = wp.types.vector(length=6, dtype=wp.float64)
 #: an aggregate keeps its rotations where its free nodes' second moment about their centroid has its smallest
 #: eigenvalue above this fraction of its largest (nodes near a line have a rotation that moves none of them)
 ROTATION_SPREAD = 1.0e-3
-#: threads per group of an aggregate's nodes (the restriction, definite_cg.py's update of r) and per row of the coarse
+#: threads per group of an aggregate's nodes (the restriction, cg_kernels.py's update of r) and per row of the coarse
 #: product (more than one warp per row: the coarse matrix has about 1,000 rows, too few warps of one row each to keep
 #: the memory busy)
 AGGREGATE_THREADS = wp.constant(128)
@@ -313,7 +313,7 @@ class CoarseSpace:
 
     def solve(self, r: wp.array, sums: wp.array, slot: int) -> None:
         """values = A_c^-1 P^T r (P^T r into ``restricted`` first), as ``apply_inverse``; graph-capturable (two
-        launches). The CG forms P^T r in its own update of r instead (definite_cg.py)."""
+        launches). The CG forms P^T r in its own update of r instead (cg_kernels.py ``_step_precondition``)."""
         wp.launch_tiled(_restrict, dim=[self.aggregates], block_dim=AGGREGATE_THREADS, device=self.device,
                         inputs=[r, self.arm, self.free, self.members, self.starts, self.restricted])
         self.apply_inverse(sums, slot)

@@ -26,12 +26,12 @@ loop is captured and launched ``CHECK_EVERY`` times between host reads. An itera
 coarse level: the product, p . q, then one kernel for the updates of x and r, z = M r, r . z, |r|^2 and, with the coarse
 level, P^T r (cg_kernels.py ``_step_precondition``: one thread group per aggregate, over its nodes), the coarse product
 A_c^-1 P^T r (which adds its part of r . z), and the update of p (which adds the coarse part of z) with the stop test
-done by its first thread (``_step_p``). The stop test and the p update share a launch because the iteration's sums live
-in one of three sets of state slots, taken in turn (iteration k uses set k mod 3, and reads the previous r . z from set
-k - 1): the test writes the next set's flag and clears its sums while the other threads still read this set's and the
-previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, a solve of press_slide's Newton
-system (H100) took 0.87-0.91x the time at the same CG iterations (a whole iteration 46.1 instead of 48.9 us in
-scripts/bench_cg_kernels.py), and the device CG's phase 0.88-0.93x per call in its frames (BENCHMARKS.md
+done by its first thread (``_step_p``, cg_kernels.py too). The stop test and the p update share a launch because the
+iteration's sums live in one of three sets of state slots, taken in turn (iteration k uses set k mod 3, and reads the
+previous r . z from set k - 1): the test writes the next set's flag and clears its sums while the other threads still
+read this set's and the previous one's. With P^T r formed in the update of r, over the arms of coarse_space.py, a solve
+of press_slide's Newton system (H100) took 0.87-0.91x the time at the same CG iterations (a whole iteration 46.1 instead
+of 48.9 us in scripts/bench_cg_kernels.py), and the device CG's phase 0.88-0.93x per call in its frames (BENCHMARKS.md
 ``fem_cg_fused_gpu``). The state (the three sets of the flag that the solve goes on, p . q, r . z and |r|^2; the
 tolerance, stop reason, iteration and iteration cap; at the end max |x|, its NaN count and x . b) is one small float64
 array, so the iterations of a stopped solve change nothing (x, r and p keep their values). A pass of the captured loop

@@ -41,8 +41,9 @@ import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
 
+from transtac_sim.physics.cg_kernels import CgWorkspace
 from transtac_sim.physics.coarse_space import CoarseSpace
-from transtac_sim.physics.definite_cg import CgResult, CgWorkspace, definite_cg
+from transtac_sim.physics.definite_cg import CgResult, definite_cg
 from transtac_sim.physics.replay import GraphCache
 from transtac_sim.physics.sparse_product import (
     BlockJacobi,

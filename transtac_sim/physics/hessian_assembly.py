@@ -1,6 +1,8 @@
 """The Hessian of E(u) (assembly.py), summed into the one kept matrix the linear solver receives, as a mixin of
 ``QuasiStaticSolver`` (which provides the spaces, quadratures, fields and contact state; assembly.py the deviatoric
-term and the barrier flag of the last gradient).
+term, the values the contact and barrier forms take, the barrier flag of the last gradient and the tets as the
+tet-by-tet terms see them, ``_deviatoric``, ``_contact_values``, ``_barrier_values``, ``_barrier_acts``, ``_tets``,
+``_barrier_check_points``).
 
 - the deviatoric part mu grad du : grad v does not depend on u: it is assembled once (assembly.py ``_deviatoric``), and
   its sparsity, every pair of nodes of an element, is the sum's;
@@ -21,8 +23,9 @@ import warp.fem as fem
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics import contact, elasticity
-from transtac_sim.physics.barrier_terms import BarrierCheckPoints, BarrierHessian
-from transtac_sim.physics.volumetric_hessian import TetGeometry, VolumetricHessian
+from transtac_sim.physics.barrier_terms import BarrierHessian
+from transtac_sim.physics.sparse_product import block_keys
+from transtac_sim.physics.volumetric_hessian import VolumetricHessian
 
 
 @wp.kernel(enable_backward=False)
@@ -38,13 +41,6 @@ def _stiff_points(k_normal: wp.array(dtype=wp.float64), k_slip: wp.array(dtype=w
     """stiff[q] = 1 where any indenter has a normal or friction stiffness at contact quadrature point q."""
     q = wp.tid()
     stiff[q] = wp.where(contact.stiff_at(k_normal, k_slip, k_slip_dir, count, q), wp.int8(1), wp.int8(0))
-
-
-def block_keys(M: BsrMatrix) -> np.ndarray:
-    """row * ncol + column of each block of M, in storage order (read back from M's device)."""
-    offsets = M.offsets.numpy()
-    rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(offsets))
-    return rows * M.ncol + M.columns.numpy()[:offsets[-1]]
 
 
 class HessianAssembly:
@@ -96,18 +92,6 @@ class HessianAssembly:
             self._barrier_hessian.add_to(H, self._F_det, self._b_det, self._barrier_tets)
         for name, part in parts.items():
             self._add_part(H, name, part)
-
-    def _tets(self) -> TetGeometry:
-        """The tets as the tet-by-tet terms see them (volumetric_hessian.py), made on first use."""
-        if self._tet_geometry is None:
-            self._tet_geometry = TetGeometry.of(self._space, self.vertices_mm, self.tets)
-        return self._tet_geometry
-
-    def _barrier_check_points(self) -> BarrierCheckPoints:
-        """The barrier's tets and check points on the device (barrier_terms.py), made on first use."""
-        if self._barrier_points is None:
-            self._barrier_points = BarrierCheckPoints.make(self._tets(), self._q_det, self.device)
-        return self._barrier_points
 
     def _add_part(self, H: BsrMatrix, name: str, part: BsrMatrix) -> None:
         """H's blocks += the part ``name``'s, each at its place in H (``_sum_slots``; one launch)."""

@@ -12,16 +12,16 @@ is not reused by another object while the key is known: held only once captured,
 one launch was freed, the next one was made at its address and captured on its first use, and its new matrix was made
 inside the capture, which Warp refuses (press_slide with ``contact_edge_mm = 0.5`` on an H100). Every other array a
 graph reads (u_prev, the contact state, the material parameters, the sums and matrices it writes, the indenters' pose
-arrays) must be made once for the solver and only changed in place, as solver.py and assembly.py do: a replay reads
-their current values. The indenter struct is one per solver (solver.py ``_indenter_struct`` writes each load step's
-poses into it), so a graph serves every load step; before, each step made a new struct and dropped every graph, and
-each step's first evaluations were launched and captured anew. ``clear`` drops graphs that can no longer be replayed:
-the Hessian's when its contact side subset is made anew, every graph when the contact stiffness is raised. On the CPU
-(no graphs) the sequence is launched every time. press_slide on an H100: the energy 1.11-1.14 -> 0.69 ms per
-evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md ``fem_graph_replay_gpu``); then on an H200 the
-gradient 1.6 -> 0.9 ms, the Hessian 2.0 -> 1.4-1.5 ms, the frames 0.90-0.93x (``fem_gradient_hessian_replay_gpu``); kept
-across load steps, on an H100, the energy 0.34 -> 0.24 ms, the gradient 0.57 -> 0.46 ms, the frames within the runs'
-noise (``fem_kept_graphs_across_steps_gpu``).
+arrays) must be made once for the solver and only changed in place, as solver.py, assembly.py and hessian_assembly.py
+do: a replay reads their current values. The indenter struct is one per solver (solver.py ``_indenter_struct`` writes
+each load step's poses into it), so a graph serves every load step; before, each step made a new struct and dropped
+every graph, and each step's first evaluations were launched and captured anew. ``clear`` drops graphs that can no
+longer be replayed: the Hessian's when its contact side subset is made anew, every graph when the contact stiffness is
+raised. On the CPU (no graphs) the sequence is launched every time. press_slide on an H100: the energy
+1.11-1.14 -> 0.69 ms per evaluation, det F 0.30-0.31 -> 0.14 ms, the frames 0.95x (BENCHMARKS.md
+``fem_graph_replay_gpu``); then on an H200 the gradient 1.6 -> 0.9 ms, the Hessian 2.0 -> 1.4-1.5 ms, the frames
+0.90-0.93x (``fem_gradient_hessian_replay_gpu``); kept across load steps, on an H100, the energy 0.34 -> 0.24 ms, the
+gradient 0.57 -> 0.46 ms, the frames within the runs' noise (``fem_kept_graphs_across_steps_gpu``).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""The Newton systems' matrix-vector product on the device, z = alpha A x + beta y for a 3x3-block CSR matrix, and the
-block-Jacobi preconditioner of such a matrix (``BlockJacobi``, the device CG's: definite_cg.py).
+"""The Newton systems' matrix-vector product on the device, z = alpha A x + beta y for a 3x3-block CSR matrix, the
+block-Jacobi preconditioner of such a matrix (``BlockJacobi``, the device CG's: definite_cg.py), and its blocks' keys
+(``block_keys``: where the summed Hessian's parts go, hessian_assembly.py and volumetric_hessian.py).
 
 The device CG (device_linear.py) spends most of its time in this product: on the press-and-slide Hessian (97k dofs, about
 1.1M blocks of 3x3 float64, 80 MB) ``warp.sparse.bsr_mv`` took 123 us per call on an H100
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import warp as wp
 from warp.optim.linear import LinearOperator
 from warp.sparse import BsrMatrix
@@ -227,3 +229,10 @@ class BlockJacobi(LinearOperator):
                       inputs=[self.inverse_blocks, x, y, z, wp.float64(alpha), wp.float64(beta)])
 
         super().__init__(A.shape, A.scalar_type, A.device, matvec)
+
+
+def block_keys(M: BsrMatrix) -> np.ndarray:
+    """row * ncol + column of each block of M, in storage order (read back from M's device)."""
+    offsets = M.offsets.numpy()
+    rows = np.repeat(np.arange(M.nrow, dtype=np.int64), np.diff(offsets))
+    return rows * M.ncol + M.columns.numpy()[:offsets[-1]]

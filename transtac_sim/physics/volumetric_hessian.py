@@ -29,6 +29,7 @@ import warp as wp
 from warp.sparse import BsrMatrix
 
 from transtac_sim.physics.elasticity import cofactor, cofactor_delta, pressure_bound
+from transtac_sim.physics.sparse_product import block_keys
 
 _f = wp.float64
 
@@ -203,9 +204,7 @@ def element_node_layout(space, vertices_mm: np.ndarray, tets: np.ndarray) -> tup
 def _block_slots(total: BsrMatrix, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """The indices among ``total``'s stored blocks of the blocks (rows[k], cols[k]) (block rows and columns); an error
     where one is not stored."""
-    offsets = total.offsets.numpy()
-    keys = np.repeat(np.arange(total.nrow, dtype=np.int64), np.diff(offsets)) * total.ncol \
-        + total.columns.numpy()[:offsets[-1]]
+    keys = block_keys(total)
     want = rows.astype(np.int64) * total.ncol + cols.astype(np.int64)
     slot = np.searchsorted(keys, want)
     if np.any(slot >= len(keys)) or np.any(keys[np.minimum(slot, len(keys) - 1)] != want):
