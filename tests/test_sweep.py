@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from transtac_sim.cli import app
 from transtac_sim.config import ConfigError
-from transtac_sim.sweep import mechanics, run
+from transtac_sim.sweep import mechanics, point_scenes, run
 from transtac_sim.sweep.config import lattice_pitch, load_sweep
 from transtac_sim.sweep.report import pareto_front
 
@@ -106,8 +106,8 @@ def test_fem_cache_replays_another_layout_exactly(tmp_path: Path):
 
     s = load_sweep(_write(tmp_path))
     a, b = (next(p for p in s.points if p.values["count"] == n) for n in (10, 16))
-    setup_a = run.point_setups(s, a.values, tmp_path)[0]
-    setup_b = run.point_setups(s, b.values, tmp_path)[0]
+    setup_a = point_scenes.point_setups(s, a.values, tmp_path)[0]
+    setup_b = point_scenes.point_setups(s, b.values, tmp_path)[0]
     assert mechanics.mechanics_key(setup_a, 2) == mechanics.mechanics_key(setup_b, 2)  # markers are not mechanics
     cache = mechanics.FemCache(tmp_path / "fem")
     assert cache.solve(setup_a, 2)["status"] == "done"
@@ -209,8 +209,8 @@ def test_what_changes_the_mechanics_and_what_the_images(tmp_path: Path):
     assert len(s.points) == 2 ** 6
 
     def keys(values):
-        setup = run.point_setups(s, values, tmp_path)[0]
-        return mechanics.mechanics_key(setup, 2), run.render_key(s, values), setup
+        setup = point_scenes.point_setups(s, values, tmp_path)[0]
+        return mechanics.mechanics_key(setup, 2), point_scenes.render_key(s, values), setup
 
     base = s.points[0].values
     k0, r0, setup0 = keys(base)

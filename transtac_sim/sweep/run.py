@@ -4,8 +4,9 @@ rendered, run through the perception pipeline and scored (``sweep.scoring``); a 
 Work is split so that each point does only what it needs:
 
 1. mechanics: one FEM solve per distinct mechanical configuration and benchmark motion (gel, stiffness,
-   mesh, physics, indenter and trajectory; not the markers, not the cameras), cached in
-   ``DIR/cache/fem/`` (``sweep.mechanics``); points that differ only in marker layout or cameras reuse it.
+   mesh, physics, indenter and trajectory; not the markers, not the cameras; a point's scenes:
+   ``sweep.point_scenes``), cached in ``DIR/cache/fem/`` (``sweep.mechanics``); points that differ only in
+   marker layout or cameras reuse it.
 2. render + score: one task per distinct rendered set (everything but the pipeline settings), written as
    a dataset under ``DIR/renders/<key>/`` (UV images of both cameras and labels.json; a frame is complete
    once its labels.json exists); the points that differ only in pipeline settings (detector, matcher) score
@@ -22,7 +23,6 @@ Outputs: ``DIR/results.csv`` (one row per point), ``DIR/plots/*.png``, ``DIR/rep
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 import traceback
@@ -30,18 +30,16 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from transtac_sim.config import ConfigError, load_hardware
+from transtac_sim.config import ConfigError
 from transtac_sim.executors import local_tasks, ray_tasks
 from transtac_sim.sweep.config import (
     LAYOUT_KEYS,
-    PIPELINE_KEYS,
     Point,
     Sweep,
-    indenter_mesh,
     key_of,
-    layout_of,
     load_sweep,
 )
+from transtac_sim.sweep.point_scenes import point_setups, render_key
 from transtac_sim.writer.atomic import write_json
 
 Progress = Callable[[str, int, int], None]
@@ -64,100 +62,6 @@ class SweepReport:
     report_md: Path
     plots: list[Path] = field(default_factory=list)
     seconds: float = 0.0
-
-
-# -- the benchmark scenes of a point ------------------------------------------------------------------------
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {v!r} as TOML")
-
-
-def _toml(d: dict, prefix: str = "") -> str:
-    """A small TOML writer for a hardware model (scalars, arrays, tables, arrays of tables)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if v is not None and not isinstance(v, dict)
-             and not (isinstance(v, list) and v and isinstance(v[0], dict))]
-    for k, v in d.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            lines += ["", f"[{name}]", _toml(v, name + ".")]
-        elif isinstance(v, list) and v and isinstance(v[0], dict):
-            for item in v:
-                lines += ["", f"[[{name}]]", _toml(item, name + ".")]
-    return "\n".join(lines)
-
-
-def hardware_ref(sweep: Sweep, values: dict, root: Path) -> str:
-    """The hardware model of a point: the sweep's own, or a copy with the point's gel thickness and camera
-    baseline written to ``root/hardware/<key>.toml``."""
-    hw, _ = load_hardware(sweep.file.scene.hardware, sweep.path.parent)
-    if values["thickness_mm"] == hw.gel.thickness_mm and values["baseline_mm"] == hw.cameras.baseline_mm:
-        return sweep.file.scene.hardware
-    d = hw.model_dump(mode="json", exclude_none=True)
-    d["gel"]["thickness_mm"] = values["thickness_mm"]
-    d["cameras"]["baseline_mm"] = values["baseline_mm"]
-    path = root / "hardware" / f"{key_of(d)}.toml"
-    if not path.is_file():
-        from transtac_sim.writer.atomic import atomic_write
-
-        text = "# written by transtac-sim sweep: " + sweep.file.scene.hardware + " with another gel thickness or baseline\n"
-        atomic_write(path, lambda f: f.write((text + _toml(d) + "\n").encode()))
-    return str(path)
-
-
-def motion_scenes(sweep: Sweep, values: dict, root: Path) -> list:
-    """The point's benchmark: one Scene per motion, with the point's markers, gel and cameras."""
-    from transtac_sim.config.scene import Scene
-
-    b, base = sweep.file.benchmark, sweep.file.scene
-    hw, _ = load_hardware(base.hardware, sweep.path.parent)
-    layout = layout_of(values, tuple(hw.gel.size_mm))
-    scenes = []
-    for i, m in enumerate(b.motions):
-        if m.kind == "press":
-            traj = [{"kind": "press", "depth_mm": b.press_depth_mm, "frames": b.frames}]
-        else:
-            n_press = max(1, b.frames // 2)
-            traj = [{"kind": "press", "depth_mm": b.press_depth_mm, "frames": n_press},
-                    {"kind": m.kind, "direction_deg": m.direction_deg, "distance_mm": m.distance_mm, "frames": b.frames - n_press}]
-        mesh = indenter_mesh(m.indenter, sweep.path)
-        scenes.append(Scene.model_validate({
-            "name": f"{sweep.file.name}_{i}_{m.kind}_{mesh.stem}", "seed": sweep.file.seed,
-            "sensor": {"hardware": hardware_ref(sweep, values, root), "markers": layout.model_dump()},
-            "mesh": base.mesh.model_dump(), "physics": base.physics.model_dump(), "render": base.render.model_dump(),
-            "indenters": [{"name": mesh.stem, "mesh": str(mesh), "units": "mm", "start_xy_mm": m.start_xy_mm,
-                           "start_gap_mm": 0.2, "friction": m.friction, "trajectory": traj}],
-            "outputs": {"cameras": ["left", "right"], "illuminations": ["uv"], "aovs": [], "labels": True},
-        }))
-    return scenes
-
-
-def point_setups(sweep: Sweep, values: dict, root: Path) -> list:
-    """The SceneSetup of every benchmark motion of a point (stiffness applied to the gel material)."""
-    from transtac_sim.scene_setup import build_setup
-
-    setups = []
-    for scene in motion_scenes(sweep, values, root):
-        setup = build_setup(scene, sweep.path)
-        if values.get("youngs_modulus_mpa") is not None:
-            gel = setup.sensor.gel.model_copy(update={"youngs_modulus_mpa": float(values["youngs_modulus_mpa"])})
-            setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, gel=gel))
-        setups.append(setup)
-    return setups
-
-
-def render_key(sweep: Sweep, values: dict) -> str:
-    """Everything the rendered images depend on: all but the pipeline settings."""
-    f = sweep.file
-    return key_of({"values": {k: v for k, v in values.items() if k not in PIPELINE_KEYS}, "seed": f.seed,
-                   "benchmark": f.benchmark.model_dump(mode="json"), "scene": f.scene.model_dump(mode="json")})
 
 
 # -- tasks (run in worker processes or Ray tasks) ----------------------------------------------------------
