@@ -186,10 +186,11 @@ def errors(row: dict, ref: dict, rest_mm: np.ndarray) -> dict:
             "marker_rms_pct": 100 * rms / scale, "force_max_pct": 100 * force, "largest_displacement_mm": scale}
 
 
-def force_rtol(setting: Setting, base) -> float:
-    """The force test's rtol a setting solves with (0: off): its own, or the scene's."""
-    rtol = setting.force_rtol if setting.force_rtol is not None else base.scene.physics.newton_force_rtol
-    return float(rtol or 0.0)
+def solved_with(setup) -> dict:
+    """What a row records of the physics it solved with (``with_setting``'s setup): the force test's rtol (0: off) and
+    friction's smoothing (mm)."""
+    physics = setup.scene.physics
+    return {"force_rtol": float(physics.newton_force_rtol or 0.0), "slip_mm": physics.friction_slip_mm}
 
 
 def summary(row: dict) -> dict:
@@ -243,35 +244,38 @@ def measure(scene: Path, base, frames: int, chosen: list[Setting], ref_setting: 
             friction: float | None, slip_mm: float | None) -> dict:
     """Solves the reference and every chosen setting of ``base`` (the setup of ``scene``) after a 2-frame warm-up;
     the rows and what ``report`` needs."""
+    def setup_of(setting: Setting):
+        return with_setting(base, setting, device, friction, slip_mm)
+
+    def described(setting: Setting, setup) -> dict:  # the setting, with the force test and smoothing it solved with
+        return setting._asdict() | solved_with(setup)
+
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
     try:  # kernels loaded outside the timings; a setting that fails here gets its row below
-        solve(with_setting(base, chosen[0], device, friction, slip_mm), 2, chosen[0].split)
+        solve(setup_of(chosen[0]), 2, chosen[0].split)
     except SimulationFailed:
         pass
     rest = np.asarray(base.sensor.markers_rest_gel_mm)
 
-    def described(setting: Setting) -> dict:  # the row's setting, with the force test and smoothing it solved with
-        return setting._asdict() | {"force_rtol": force_rtol(setting, base),
-                                    "slip_mm": with_setting(base, setting, device, friction, slip_mm).scene.physics
-                                    .friction_slip_mm}
-
+    ref_setup = setup_of(ref_setting)
     try:
-        ref = solve(with_setting(base, ref_setting, device, friction, slip_mm), frames, ref_setting.split)
+        ref = solve(ref_setup, frames, ref_setting.split)
     except SimulationFailed as e:
         raise SystemExit(f"the reference {ref_setting.label()} failed: {e}") from None
-    ref |= described(ref_setting) | summary(ref)
+    ref |= described(ref_setting, ref_setup) | summary(ref)
     print(f"reference {ref_setting.label()}: {ref['tets']} tets, {ref['s_frame']:.2f} s/frame, {ref['iterations']}",
           flush=True)
     rows = []
     for setting in chosen:
+        setup = setup_of(setting)
         try:
-            r = solve(with_setting(base, setting, device, friction, slip_mm), frames, setting.split)
+            r = solve(setup, frames, setting.split)
         except SimulationFailed as e:
             why = str(e) + (f" (counting the frames split in {setting.split})" if setting.split > 1 else "")
-            rows.append(described(setting) | {"failed": why})
+            rows.append(described(setting, setup) | {"failed": why})
             print(f"{setting.label()}: failed, {why}", flush=True)
             continue
-        r |= described(setting) | summary(r) | errors(r, ref, rest)
+        r |= described(setting, setup) | summary(r) | errors(r, ref, rest)
         rows.append(r)
         print(f"{setting.label()}: {r['tets']} tets, {r['s_frame']:.2f} s/frame, iterations {r['iterations']}, markers "
               f"max {r['marker_max_mm']:.4f} rms {r['marker_rms_mm']:.4f} mm, force {r['force_max_pct']:.2f} %",

@@ -46,8 +46,9 @@ def test_a_setting_sets_the_force_test_or_leaves_the_scenes():
     assert setup.scene.physics.newton_force_rtol == 3e-3
     for setting, rtol in ((study.Setting(1.5, 4), 3e-3), (study.Setting(1.5, 4, 1, 1e-3), 1e-3),
                           (study.Setting(1.5, 4, 1, 0.0), 0.0)):
-        assert study.with_setting(setup, setting, "cpu").scene.physics.newton_force_rtol == rtol
-        assert study.force_rtol(setting, setup) == rtol
+        solved = study.with_setting(setup, setting, "cpu")
+        assert solved.scene.physics.newton_force_rtol == rtol
+        assert study.solved_with(solved) == {"force_rtol": rtol, "slip_mm": 0.05}
     assert study.rtol_cell({"force_rtol": 0.0}) == "off" and study.rtol_cell({}) == "off"
     assert study.rtol_cell({"force_rtol": 3e-3}) == "0.003"
 

@@ -7,37 +7,12 @@ runs them.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
+
+import tomli_w
 
 from transtac_sim.config import load_hardware
 from transtac_sim.sweep.config import PIPELINE_KEYS, Sweep, indenter_mesh, key_of, layout_of
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {v!r} as TOML")
-
-
-def _toml(d: dict, prefix: str = "") -> str:
-    """A small TOML writer for a hardware model (scalars, arrays, tables, arrays of tables)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if v is not None and not isinstance(v, dict)
-             and not (isinstance(v, list) and v and isinstance(v[0], dict))]
-    for k, v in d.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            lines += ["", f"[{name}]", _toml(v, name + ".")]
-        elif isinstance(v, list) and v and isinstance(v[0], dict):
-            for item in v:
-                lines += ["", f"[[{name}]]", _toml(item, name + ".")]
-    return "\n".join(lines)
 
 
 def hardware_ref(sweep: Sweep, values: dict, root: Path) -> str:
@@ -55,7 +30,7 @@ def hardware_ref(sweep: Sweep, values: dict, root: Path) -> str:
 
         text = (f"# written by transtac-sim sweep: {sweep.file.scene.hardware} with another gel thickness or "
                 "baseline\n")
-        atomic_write(path, lambda f: f.write((text + _toml(d) + "\n").encode()))
+        atomic_write(path, lambda f: f.write((text + tomli_w.dumps(d)).encode()))
     return str(path)
 
 
