@@ -6,7 +6,7 @@
     python scripts/fem_coupled_friction.py scenes/train_random.toml --sequence 2 --moves 1,4 --linear gmres   (a GPU)
 
 The solver lags friction's normal pressure lam = k g and tangent plane n at u_lag (physics/contact.py) and moves the lag
-a few times per load step (newton.py ``_move_lag``): a fixed point on the pressure, each move costing Newton a few
+a few times per load step (friction_lag.py ``_move_lag``): a fixed point on the pressure, each move costing Newton a few
 iterations, and on sharp, high-friction contacts not converged after 12 moves (BENCHMARKS.md
 ``fem_friction_lag_moves_train_random_gpu``). Here the lag is the current u at every Newton iteration and the Jacobian
 takes the pressure's derivative in: the friction gradient G_f = mu k g f1(y) t (t = u_t / y) depends on u through

@@ -5,7 +5,7 @@
     python scripts/fem_friction_lag_moves.py scenes/train_random.toml --sequence 2 --moves 1,4,12
 
 Friction's normal pressure and tangent plane are lagged (contact.py) and moved to the current state at most
-``[physics] friction_lag_moves`` times per load step (newton.py ``_move_lag``). Each move costs Newton a few
+``[physics] friction_lag_moves`` times per load step (friction_lag.py ``_move_lag``). Each move costs Newton a few
 iterations; fewer moves leave the friction force further from the fixed point of the lag. This solves the same
 frames with each count in ``--moves`` (default: the tiny test mesh with the press-and-slide motion, friction 0.5)
 and reports, per count, the Newton iterations and seconds of the frames and the largest difference of the

@@ -353,11 +353,11 @@ def report(data: dict, name: str) -> str:
 
 def main(scene: Path = typer.Option(ROOT / "scenes" / "press_slide.toml"), frames: int = typer.Option(10, min=2),
          settings: str = typer.Option("1.2/4,1.0/4,0.8/4,0.8/1,0.65/4,0.5/4,0.4/4",
-                                      help="EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]], comma-separated: contact edge (mm) / "
+                                      help="EDGE/LAGS\\[/SPLIT\\[/RTOL\\[/SLIP]]], comma-separated: contact edge (mm) / "
                                       "lag moves / load steps a frame / Newton's force test (0: off; -, the "
                                       "default: the scene's) / friction's smoothing (mm; default: "
                                       "--friction-slip-mm's, else the scene's)"),
-         reference: str = typer.Option("0.3/4", help="EDGE/LAGS[/SPLIT[/RTOL[/SLIP]]] of the reference solution"),
+         reference: str = typer.Option("0.3/4", help="EDGE/LAGS\\[/SPLIT\\[/RTOL\\[/SLIP]]] of the reference solution"),
          device: str = typer.Option("", help="replace the scene's [physics] device (cpu, cuda)"),
          friction: float | None = typer.Option(None, min=0.0, help="replace every indenter's friction coefficient "
                                                "(0: frictionless); the names end in _friction_MU"),
