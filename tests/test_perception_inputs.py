@@ -111,3 +111,37 @@ def test_detect_and_track_on_a_dataset_folder(tmp_path: Path):
     assert np.allclose([m["displacement_px"] for m in last], [1.4, 0.8], atol=0.05)  # 0.7, 0.4 px per frame
     res = runner.invoke(app, ["track", str(ds), "--sequence", "nope", "--out", str(tmp_path / "t2.json")])
     assert res.exit_code == 2 and "no sequence 'nope'" in " ".join(res.output.split())
+
+
+def test_detect_preview_of_a_first_image_without_markers_draws_none(tmp_path: Path):
+    """The preview shows the first image with its own markers, also when it has none (a blank frame)."""
+    d = tmp_path / "frames"
+    d.mkdir()
+    cv2.imwrite(str(d / "000.png"), np.zeros((96, 128, 3), np.uint8))
+    cv2.imwrite(str(d / "001.png"), draw_markers(grid_markers()))
+    res, _ = _detect([str(d), "--method", "blob", "--preview", str(tmp_path / "p.png")], tmp_path / "det.json")
+    assert res.exit_code == 0, res.output
+    assert cv2.imread(str(tmp_path / "p.png")).max() == 0  # no circle drawn
+
+
+def test_dataset_commands_take_the_complete_frames_and_name_a_missing_view(tmp_path: Path):
+    """labels.json is written last: a frame folder without it is unfinished and left out (track, reconstruct).
+    A complete frame without one camera's image is named, not paired with another frame's image."""
+    import json
+
+    from synthetic_markers import write_tiny_dataset
+
+    ds = write_tiny_dataset(tmp_path / "ds", sequences=1, frames=4)
+    (ds / "sequences/seq_00000/000003/labels.json").unlink()
+    res = runner.invoke(app, ["track", str(ds), "--detector", "blob", "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 0, res.output
+    frames = json.loads((tmp_path / "t.json").read_text())["frames"]
+    assert [f["path"] for f in frames] == [f"sequences/seq_00000/{k:06d}/left_uv.png" for k in range(3)]
+    k = [[100.0, 0.0, 63.5], [0.0, 100.0, 47.5], [0.0, 0.0, 1.0]]
+    (ds / "calibration.json").write_text(json.dumps({
+        "image_size": [128, 96], "model": "pinhole", "K_left": k, "dist_left": [0.0] * 5, "K_right": k,
+        "dist_right": [0.0] * 5, "R": np.eye(3).tolist(), "T": [-12.0, 0.0, 0.0]}))
+    (ds / "sequences/seq_00000/000001/right_uv.png").unlink()
+    res = runner.invoke(app, ["reconstruct", "--dataset", str(ds), "--detector", "blob", "--out", str(tmp_path / "r")])
+    text = " ".join(res.output.split())
+    assert res.exit_code == 2 and "000001" in text and "right_uv.png" in text and not (tmp_path / "r").exists()

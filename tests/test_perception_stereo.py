@@ -68,6 +68,12 @@ def test_bad_calibration_files_say_what_is_wrong(tmp_path: Path, changes: dict, 
     assert str(e.value).startswith(f"{path}: ") and message in str(e.value)
 
 
+def test_a_translation_saved_as_opencv_returns_it_is_read():
+    """cv2.stereoCalibrate returns T as a 3 x 1 array; saved as it is, it is read as the vector it is."""
+    calib = _calib(T=[[-12.0], [0.0], [0.0]])
+    assert calib.T.shape == (3,) and calib.T.tolist() == [-12.0, 0.0, 0.0]
+
+
 def test_unreadable_calibration_file(tmp_path: Path):
     (tmp_path / "calibration.json").write_text("{not json")
     with pytest.raises(PerceptionInputError, match="not readable JSON"):
@@ -188,6 +194,19 @@ def test_hungarian_is_one_to_one_and_nn_is_not():
     assert nn.tolist() == [[0, 0], [1, 0]] and hu.tolist() == [[0, 0]]
 
 
+def test_delaunay_without_a_triangulation_matches_one_to_one():
+    """Three left points on a line have no triangulation; the epipolar NN gives two of them one right point,
+    the Delaunay matcher's fallback (the gated one-to-one assignment) does not."""
+    calib = calibration_from_dict(IDEAL)
+    left = np.array([[300.0, 200.0], [304.0, 200.0], [308.0, 200.0]])
+    right = np.array([[144.0, 200.5], [152.5, 200.2]])
+    params = MatchParams(disparity_px=156.0)
+    nn = MATCHERS["epipolar_nn"](left, right, calib, params)
+    assert len(np.unique(nn[:, 1])) < len(nn)
+    pairs = MATCHERS["delaunay"](left, right, calib, params)
+    assert len(pairs) == 2 and len(np.unique(pairs[:, 1])) == 2
+
+
 @pytest.mark.parametrize("name", sorted(MATCHERS))
 @pytest.mark.parametrize("n_left, n_right", [(0, 0), (0, 3), (1, 1), (2, 2), (3, 0)])
 def test_matchers_take_empty_and_tiny_inputs(name: str, n_left: int, n_right: int):
@@ -260,6 +279,18 @@ def test_image_matchers_follow_the_images(name: str):
     assert np.sum(lid[blank[:, 0]] == rid[blank[:, 1]]) < 50  # without the right image's dots: guesses
     with pytest.raises(PerceptionInputError, match="image is 320x240 px"):
         image_matcher(name, np.zeros((240, 320), np.uint8), np.zeros((240, 320), np.uint8))(left, right, calib)
+
+
+def test_sgbm_matcher_matches_markers_by_the_left_edge():
+    """SGBM leaves the leftmost minDisparity + numDisparities columns without a disparity (184 px for these
+    disparities of about 156 px); the images are padded so that markers there are matched too."""
+    calib = calibration_from_dict(IDEAL)
+    left, right, lid, rid = synthetic(0, drop_right=0, drop_left=0, outliers=0)
+    edge = lid[(left[:, 0] < 184.0)]
+    assert len(edge) >= 3
+    pairs = image_matcher("sgbm", _dots(left), _dots(right))(left, right, calib, MatchParams())
+    matched = {int(lid[i]) for i, j in pairs if lid[i] == rid[j]}
+    assert set(edge.tolist()) <= matched
 
 
 # ---------------------------------------------------------------- triangulation

@@ -68,6 +68,24 @@ def test_a_frame_without_detections_keeps_the_tracks():
     assert before == after and min(before.values()) >= 0
 
 
+def test_dim_blobs_start_tracks_like_bright_ones():
+    """The blob baseline's scores rank blobs by brightness (``confident_from`` 0): markers drawn at 20-60 grey
+    levels, many below half the image's bright level, are all tracked from the first frame. Detections that keep
+    a learned detector's split (0.5) with such scores would only continue tracks (ByteTrack) and start none."""
+    from transtac_sim.perception.detection.blob import detect_blobs
+
+    shape = (120, 200)
+    uv = grid_markers(shape, spacing_px=20.0, margin_px=12.0)
+    level = np.random.default_rng(0).uniform(20.0, 60.0, len(uv))
+    dets = [detect_blobs(np.maximum.reduce([draw_markers(p[None], shape, level=lv) for p, lv in
+                                            zip(uv + [0.7 * f, 0.0], level, strict=True)])) for f in range(4)]
+    assert all(len(d) == len(uv) for d in dets) and (dets[0].score < 0.5).sum() >= 5
+    res = track_bytetrack(dets)
+    assert all((ids >= 0).all() for ids in res.track_ids)
+    as_learned = [Detections(d.uv, d.score, d.size) for d in dets]
+    assert (track_bytetrack(as_learned).track_ids[-1] < 0).sum() == (dets[-1].score < 0.5).sum()
+
+
 def test_displacements_are_measured_from_the_first_frame():
     truth, dets = _moving(3.0, frames=4)
     res = track_bytetrack(dets)

@@ -51,6 +51,25 @@ def test_every_eighth_sequence_is_validation(tmp_path: Path):
     assert len(train) == 16 and len(val) == 2
 
 
+def test_the_context_level_needs_sizes_in_multiples_of_16(tmp_path: Path):
+    """MarkerNet's context level has stride 16: a crop or image size that is a multiple of 8 only is refused
+    before training, by the command and by the library, with what to change."""
+    from typer.testing import CliRunner
+
+    from transtac_sim.cli import app
+    from transtac_sim.perception.errors import PerceptionInputError
+
+    ds = write_tiny_dataset(tmp_path / "ds", sequences=2, frames=1, shape_hw=(88, 128))
+    res = CliRunner().invoke(app, ["train-detector", str(ds), "--out", str(tmp_path / "m.pt"), "--crop", "72",
+                                   "--context"])
+    assert res.exit_code == 2 and "multiple of 16 with --context" in " ".join(res.output.split())
+    with pytest.raises(ValueError, match="crop 72 px: must be a multiple of 16"):
+        train_detector([ds], tmp_path / "m.pt", TrainConfig(steps=1, crop_px=72, context=True, device="cpu"))
+    with pytest.raises(PerceptionInputError, match="images of 128x88 px"):
+        train_detector([ds], tmp_path / "m.pt", TrainConfig(steps=1, crop_px=64, context=True, device="cpu"))
+    assert not (tmp_path / "m.pt").exists()
+
+
 def test_correlation_term_is_zero_for_alike_neighbours_and_one_for_orthogonal_ones():
     """L_corr = mean over neighbour pairs of (1 - cos): features equal at every marker give 0, features
     alternating between two orthogonal vectors along a row of markers give 1 (every neighbour differs)."""

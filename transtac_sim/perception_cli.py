@@ -61,8 +61,9 @@ def register(app: typer.Typer) -> None:
         from transtac_sim.perception.errors import PerceptionInputError
         from transtac_sim.perception.training.train import TrainConfig, train_detector
 
-        if crop % 8:
-            _fail(ValueError(f"--crop {crop}: must be a multiple of 8"))
+        multiple = 16 if context else 8  # MarkerNet's coarsest stride
+        if crop % multiple:
+            _fail(ValueError(f"--crop {crop}: must be a multiple of {multiple}" + (" with --context" if context else "")))
         cfg = TrainConfig(steps=steps, batch=batch, crop_px=crop, width=width, context=context,
                           correlation_weight=correlation_weight,
                           learning_rate=learning_rate, device=device, eval_every=eval_every, seed=seed)

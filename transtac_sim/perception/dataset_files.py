@@ -58,6 +58,22 @@ def sequences(dataset: Path) -> list[str]:
     return sorted(p.name for p in root.iterdir() if p.is_dir())
 
 
+def pick_sequence(dataset: Path, sequence: str | None) -> str:
+    """``sequence`` if the dataset has it, else (None) its first sequence; PerceptionInputError otherwise."""
+    seqs = sequences(dataset)
+    seq = sequence or (seqs[0] if seqs else None)
+    if seq not in seqs:
+        raise PerceptionInputError(dataset, f"no sequence {seq!r} (has: {', '.join(seqs[:8]) or 'none'})",
+                                   "pick one with --sequence")
+    return seq
+
+
+def complete_frames(dataset: Path, sequence: str) -> list[Path]:
+    """A sequence's complete frame folders (those with ``labels.json``, written last), in frame order."""
+    root = Path(dataset) / "sequences" / sequence
+    return [f for f in sorted(root.iterdir()) if f.is_dir() and (f / "labels.json").is_file()]
+
+
 def labelled_images(dataset: Path, only: set[str] | None = None, cameras=CAMERAS) -> Iterator[LabelledImage]:
     """Every complete frame's UV image per camera, with its truth, in sequence and frame order."""
     dataset = Path(dataset)

@@ -67,7 +67,7 @@ def detect_images(target: Path, out: Path, method: str = "learned", model: Path 
         for k, v in d.seconds.items():
             seconds[k] = seconds.get(k, 0.0) + v
         entries.append({"path": ref.name, "markers": d.as_json()})
-        first = first or d
+        first = d if first is None else first  # not `or`: a Detections with no markers is falsy
         total += len(d)
         if progress:
             progress(i + 1, len(refs))

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from transtac_sim.perception.dataset_files import complete_frames, pick_sequence
 from transtac_sim.perception.errors import PerceptionInputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -46,9 +47,30 @@ def find_images(target: Path, pattern: str = "**/*_uv.png") -> list[ImageRef]:
     return refs
 
 
-def read_color_image(path: Path) -> np.ndarray:
-    """An 8-bit BGR image (H, W, 3). A missing, unreadable, empty or single-channel file raises
-    PerceptionInputError naming it."""
+def sequence_files(dataset: Path, sequence: str | None, files: tuple[str, ...]) -> list[tuple[ImageRef, ...]]:
+    """Per complete frame of a dataset's sequence (``sequence``, or its first), in frame order, the ImageRefs of
+    ``files`` (e.g. ``("left_uv.png", "right_uv.png")``), named relative to the dataset folder. Frames without
+    ``labels.json`` are unfinished and left out; a complete frame without one of ``files``, or a sequence with no
+    complete frame, raises PerceptionInputError naming it."""
+    dataset = Path(dataset)
+    seq = pick_sequence(dataset, sequence)
+    frames = complete_frames(dataset, seq)
+    if not frames:
+        raise PerceptionInputError(dataset / "sequences" / seq, "no complete frame (none has labels.json)",
+                                   "let `transtac-sim generate` finish this sequence, or pick another one")
+    refs = []
+    for fdir in frames:
+        missing = [f for f in files if not (fdir / f).is_file()]
+        if missing:
+            raise PerceptionInputError(fdir, f"complete frame without {', '.join(missing)}",
+                                       "check the dataset with `transtac-sim validate`")
+        refs.append(tuple(ImageRef(fdir / f, str((fdir / f).relative_to(dataset))) for f in files))
+    return refs
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An 8-bit image as stored: (H, W) grey, or (H, W, 3) BGR (an alpha channel dropped). A missing, unreadable
+    or empty file, or one that is not 8-bit, raises PerceptionInputError naming it."""
     path = Path(path)
     if not path.is_file():
         raise PerceptionInputError(path, "image not found", "check the path")
@@ -57,9 +79,17 @@ def read_color_image(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise PerceptionInputError(path, "not a readable image", "use PNG, JPEG, BMP or TIFF")
-    if image.ndim == 2 or image.shape[2] == 1:
-        raise PerceptionInputError(path, "grayscale image, the detector needs the colour (BGR) UV image",
-                                   "record the camera in colour")
     if image.dtype != np.uint8:
         raise PerceptionInputError(path, f"{image.dtype} pixels, 8-bit expected", "save the image as 8-bit")
-    return image[:, :, :3] if image.shape[2] == 4 else image
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    return image[:, :, :3] if image.ndim == 3 and image.shape[2] == 4 else image
+
+
+def read_color_image(path: Path) -> np.ndarray:
+    """An 8-bit BGR image (H, W, 3) (``read_image``); a single-channel file raises PerceptionInputError naming it."""
+    image = read_image(path)
+    if image.ndim == 2:
+        raise PerceptionInputError(path, "grayscale image, the detector needs the colour (BGR) UV image",
+                                   "record the camera in colour")
+    return image

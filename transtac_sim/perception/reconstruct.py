@@ -31,7 +31,7 @@ import numpy as np
 from transtac_sim.perception.detect import make_detector
 from transtac_sim.perception.errors import PerceptionInputError
 from transtac_sim.perception.fuse import ANCHOR_MODES, fuse_frame
-from transtac_sim.perception.images import ImageRef, find_images, read_color_image
+from transtac_sim.perception.images import ImageRef, find_images, is_dataset, read_color_image, sequence_files
 from transtac_sim.perception.preview import reconstruction_panel, write_png, write_video
 from transtac_sim.perception.stereo import (
     MATCHERS,
@@ -83,16 +83,13 @@ def _frames(source: Path) -> tuple[list[str], list[np.ndarray]]:
 def _inputs(dataset: Path | None, sequence: str | None, calibration: Path | None, left: Path | None,
             right: Path | None, kind: str = "uv"):
     if dataset is not None:
-        seqs = sorted(p.name for p in (Path(dataset) / "sequences").iterdir() if p.is_dir()) \
-            if (Path(dataset) / "sequences").is_dir() else []
-        seq = sequence or (seqs[0] if seqs else None)
-        if seq not in seqs:
-            raise PerceptionInputError(dataset, f"no sequence {seq!r}" if seqs else "not a dataset folder (no sequences/)",
-                                       "pick one with --sequence" if seqs else "pass a folder written by `transtac-sim generate`")
+        if not is_dataset(Path(dataset)):
+            raise PerceptionInputError(dataset, "not a dataset folder (no sequences/)",
+                                       "pass a folder written by `transtac-sim generate`")
         calib = load_calibration(Path(dataset) / "calibration.json")
-        names_l, frames_l = zip(*[(r.name, read_color_image(r.path)) for r in find_images(dataset, f"{seq}/*/left_{kind}.png")], strict=True)
-        names_r, frames_r = zip(*[(r.name, read_color_image(r.path)) for r in find_images(dataset, f"{seq}/*/right_{kind}.png")], strict=True)
-        names_l, frames_l, names_r, frames_r = list(names_l), list(frames_l), list(names_r), list(frames_r)
+        pairs = sequence_files(dataset, sequence, (f"left_{kind}.png", f"right_{kind}.png"))
+        names_l, names_r = [a.name for a, _ in pairs], [b.name for _, b in pairs]
+        frames_l, frames_r = [read_color_image(a.path) for a, _ in pairs], [read_color_image(b.path) for _, b in pairs]
     else:
         if calibration is None or left is None or right is None:
             raise PerceptionInputError("reconstruct", "needs --dataset, or --calibration with --left and --right",

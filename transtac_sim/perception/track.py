@@ -17,8 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from transtac_sim.perception.detect import make_detector
-from transtac_sim.perception.errors import PerceptionInputError
-from transtac_sim.perception.images import find_images, is_dataset, read_color_image
+from transtac_sim.perception.images import find_images, is_dataset, read_color_image, sequence_files
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
 from transtac_sim.perception.tracking.flow import track_flow
 from transtac_sim.writer.atomic import write_json
@@ -33,14 +32,11 @@ class TrackReport:
 
 
 def sequence_images(target: Path, sequence: str | None, camera: str) -> list:
-    """The frames to track: a folder's images, or ``sequences/<sequence>/*/<camera>_uv.png`` of a dataset."""
+    """The frames to track: a folder's images, or ``<camera>_uv.png`` of each complete frame of a dataset's
+    sequence (images.py ``sequence_files``)."""
     target = Path(target)
     if target.is_dir() and is_dataset(target):
-        seqs = sorted(p.name for p in (target / "sequences").iterdir() if p.is_dir())
-        seq = sequence or (seqs[0] if seqs else None)
-        if seq not in seqs:
-            raise PerceptionInputError(target, f"no sequence {seq!r} (has: {', '.join(seqs[:8])})", "pick one with --sequence")
-        return find_images(target, f"{seq}/*/{camera}_uv.png")
+        return [refs[0] for refs in sequence_files(target, sequence, (f"{camera}_uv.png",))]
     return find_images(target)
 
 

@@ -11,9 +11,13 @@ import numpy as np
 @dataclass(frozen=True)
 class Detections:
     uv: np.ndarray  # (N, 2) marker centres, px (OpenCV convention)
-    score: np.ndarray  # (N,) confidence in [0, 1]
+    score: np.ndarray  # (N,) in [0, 1]: the learned detector's confidence, the blob baseline's brightness ratio
     size: np.ndarray  # (N, 2) box width, height, px
     seconds: dict[str, float] = field(default_factory=dict)  # pre-processing, network, decoding
+    #: the score from which a detection is a confident one (ByteTrack's high-score detections: associated first, and
+    #: the only ones that start a track): 0.5 for the learned detector; 0 for the blob baseline, whose scores rank
+    #: blobs by brightness (every blob it reports is a detection it stands by)
+    confident_from: float = 0.5
 
     def __len__(self) -> int:
         return len(self.uv)

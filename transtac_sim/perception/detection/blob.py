@@ -5,7 +5,9 @@ Steps: the marker channel (green by default: the pigment's emission) minus the m
 (removes white-light leak, which is grey); a threshold at ``threshold_fraction`` of the image's bright
 level (its 99.9th percentile), so exposure does not matter; OpenCV's SimpleBlobDetector on that mask
 (``blobColor = 255``: it looks for dark blobs by default) with area and circularity filters; then each
-blob's centre refined by the intensity centroid (``refine.intensity_centroids``).
+blob's centre refined by the intensity centroid (``refine.intensity_centroids``). A blob's score is its peak
+over the bright level: it ranks blobs, it is not a confidence (``Detections.confident_from`` is 0: the tracker
+takes every blob as a confident detection).
 """
 
 from __future__ import annotations
@@ -54,11 +56,12 @@ def detect_blobs(image_bgr: np.ndarray, params: BlobParams = BlobParams()) -> De
     keypoints = cv2.SimpleBlobDetector_create(p).detect(mask)
     t1 = time.perf_counter()
     if not keypoints:
-        return Detections(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), {"detect": t1 - t0, "refine": 0.0})
+        return Detections(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2)), {"detect": t1 - t0, "refine": 0.0},
+                          confident_from=0.0)
     uv = np.array([k.pt for k in keypoints], dtype=np.float64)
     diameter = np.array([k.size for k in keypoints], dtype=np.float64)
     uv = intensity_centroids(resp, uv, int(np.clip(np.median(diameter) * 0.75 + 1.5, 3, 12)))
     peak = np.array([resp[int(round(v)), int(round(u))] for u, v in np.clip(uv, 0, [resp.shape[1] - 1, resp.shape[0] - 1])])
     score = np.clip(peak / bright, 0.0, 1.0)
     size = np.repeat(diameter[:, None], 2, axis=1)
-    return Detections(uv, score, size, {"detect": t1 - t0, "refine": time.perf_counter() - t1})
+    return Detections(uv, score, size, {"detect": t1 - t0, "refine": time.perf_counter() - t1}, confident_from=0.0)

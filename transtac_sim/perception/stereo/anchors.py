@@ -80,7 +80,9 @@ def feature_pairs(calib: StereoCalibration, left_bgr: np.ndarray, right_bgr: np.
     rl, rr = calib.rectified(lu, "left"), calib.rectified(ru, "right")
     disparity = rl[:, None, 0] - rr[None, :, 0]
     gate = (np.abs(rl[:, None, 1] - rr[None, :, 1]) <= row_tol_px) & (disparity > 0) & (disparity < max_disparity_px)
-    dist = np.where(gate, np.linalg.norm(dl[:, None] - dr[None], axis=2), np.inf)
+    dist = np.full(gate.shape, np.inf)
+    ii, jj = np.nonzero(gate)  # descriptor distances of the gated pairs only (not an N x M x 128 array)
+    dist[ii, jj] = np.linalg.norm(dl[ii] - dr[jj], axis=1)
     order = np.argsort(dist, axis=1)[:, :2]
     rows = np.arange(len(dist))
     best, second = dist[rows, order[:, 0]], dist[rows, order[:, 1]]

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from transtac_sim.perception.errors import PerceptionInputError
-from transtac_sim.perception.images import find_images, read_color_image
+from transtac_sim.perception.images import find_images, read_image
 from transtac_sim.writer.atomic import write_json
 
 MIN_PAIRS = 4
@@ -34,9 +34,10 @@ class CalibrationReport:
     focal_px: tuple[float, float]
 
 
-def find_corners(image_bgr: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
-    """(N, 2) sub-pixel inner corners of a ``board`` = (columns, rows) chessboard, or None."""
-    gray = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+def find_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
+    """(N, 2) sub-pixel inner corners of a ``board`` = (columns, rows) chessboard in an 8-bit grey (H, W) or BGR
+    (H, W, 3) image, or None."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     found, corners = cv2.findChessboardCornersSB(gray, board, flags=cv2.CALIB_CB_ACCURACY)
     return corners.reshape(-1, 2).astype(np.float32) if found else None
 
@@ -50,7 +51,7 @@ def calibrate_stereo(left: Path, right: Path, out: Path, board: tuple[int, int],
     grid[:, :2] = np.mgrid[0:board[0], 0:board[1]].T.reshape(-1, 2) * square_mm
     pts_l, pts_r, size = [], [], None
     for a, b in zip(refs_l, refs_r, strict=True):
-        im_l, im_r = read_color_image(a.path), read_color_image(b.path)
+        im_l, im_r = read_image(a.path), read_image(b.path)
         s = (im_l.shape[1], im_l.shape[0])
         if size is None:
             size = s

@@ -138,6 +138,8 @@ def calibration_from_dict(data: dict, source: Path | str = "calibration") -> Ste
             raise PerceptionInputError(source, f"{key} is not numeric", f"fix '{key}'") from None
         if not np.all(np.isfinite(arrays[key])):
             raise PerceptionInputError(source, f"{key} has non-finite values", f"fix '{key}'")
+        if key == "T" and arrays[key].shape in ((3, 1), (1, 3)):  # OpenCV's stereoCalibrate returns T as 3 x 1
+            arrays[key] = arrays[key].ravel()
         if key in _SHAPES and arrays[key].shape != _SHAPES[key]:
             raise PerceptionInputError(source, f"{key} has shape {arrays[key].shape}, not {_SHAPES[key]}", f"fix '{key}'")
         if key.startswith("dist"):

@@ -29,7 +29,8 @@
    the matching ends without triangulating again.)
 The result holds the anchored and propagated matches only: initial matches that no consistent triangle
 confirms are dropped (that is what keeps precision when a point is missing in one view and the nearest
-neighbour is a wrong one). With fewer than 3 points in a view the epipolar NN result is returned.
+neighbour is a wrong one). Where a view has no triangulation (fewer than 3 points, or all on a line) the
+gated one-to-one assignment (``matching.match_hungarian``) is returned, so that no right point is matched twice.
 
 Every step works on whole arrays (all triangles, all edges, all points of a round at once); the edges of
 step 5 come from the triangles once per triangulation, sorted by point and length.
@@ -45,6 +46,7 @@ from transtac_sim.perception.stereo.matching import (
     Candidates,
     MatchParams,
     candidates,
+    match_hungarian,
     nn_from_candidates,
 )
 
@@ -55,18 +57,6 @@ _CYCLE = [0, 1, 2, 0, 1]  # a triangle's vertices p0 p1 p2 p0 p1: the edge oppos
 _TRUE = np.ones(1, dtype=bool)
 
 
-def descriptor(p: np.ndarray) -> np.ndarray:
-    """Normalised edge lengths (..., 3) of triangles p (..., 3, 2): edge opposite vertex k over the perimeter."""
-    e = np.linalg.norm(p[..., [1, 2, 0], :] - p[..., [2, 0, 1], :], axis=-1)
-    return e / np.maximum(e.sum(axis=-1, keepdims=True), 1e-12)
-
-
-def signed_area(p: np.ndarray) -> np.ndarray:
-    """Twice the signed area of triangles p (..., 3, 2) (px^2)."""
-    u, v = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
-    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-
-
 def similar(left: np.ndarray, right: np.ndarray, tol: float) -> np.ndarray:
     """Whether triangles left, right (..., 3, 2) with corresponding vertices are similar (module docstring)."""
     p = np.stack(np.broadcast_arrays(left, right))[..., _CYCLE, :]
@@ -75,8 +65,9 @@ def similar(left: np.ndarray, right: np.ndarray, tol: float) -> np.ndarray:
 
 def _similar(x: np.ndarray, y: np.ndarray, tol: float) -> np.ndarray:
     """``similar`` of the triangles of view 0 and view 1 with vertex coordinates x, y (2, 5, ...), the
-    vertices in ``_CYCLE`` order: both views in one pass, each edge over all triangles at once (the
-    arithmetic of ``descriptor`` and ``signed_area``)."""
+    vertices in ``_CYCLE`` order: both views in one pass, each edge over all triangles at once. A triangle's
+    descriptor is its edge lengths (the edge opposite vertex k) over its perimeter; similar triangles have
+    descriptors within ``tol`` of each other and signed areas of the same sign (the same orientation)."""
     ex, ey = x[:, 1:4] - x[:, 2:5], y[:, 1:4] - y[:, 2:5]  # p1 - p2, p2 - p0, p0 - p1
     e = np.sqrt(ex * ex + ey * ey)
     desc = e / np.maximum(e[:, 0] + e[:, 1] + e[:, 2], 1e-12)[:, None]
@@ -254,9 +245,8 @@ def match_delaunay(left_uv: np.ndarray, right_uv: np.ndarray, calib: StereoCalib
     tri_l = _triangles(c.left)
     points = np.concatenate([c.left, c.right])
     good = None if tri_l is None else anchors(c, nn, tri_l[0], points, params)
-    if good is None:  # a view without triangulation: the epipolar NN result
-        i = np.flatnonzero(nn >= 0)
-        return np.column_stack([i, nn[i]]).astype(np.int64)
+    if good is None:  # a view without triangulation: one-to-one, no right point matched twice
+        return match_hungarian(left_uv, right_uv, calib, params)
     s = tri_l[0]
     in_good = np.zeros(len(c.left), dtype=bool)
     in_good[s[good].ravel()] = True

@@ -73,13 +73,9 @@ def no_pairs() -> np.ndarray:
     return np.zeros((0, 2), dtype=np.int64)
 
 
-def estimate_disparity(dy: np.ndarray, disparity: np.ndarray, params: MatchParams) -> float:
-    """The mode (px) of the disparities of all pairs within the epipolar gate (NaN when there are none)."""
-    return _disparity_mode(disparity[np.abs(dy) <= params.tau_epi_px], params.disparity_bin_px)
-
-
 def _disparity_mode(d: np.ndarray, b: float) -> float:
-    """``estimate_disparity`` of the disparities ``d`` in the y gate, histogram bins ``b`` px."""
+    """The mode (px) of the disparities ``d`` of the pairs within the epipolar gate (histogram bins ``b`` px,
+    smoothed; the median of the disparities near the peak), NaN when there are none."""
     if d.size == 0:
         return float("nan")
     d = np.sort(d)

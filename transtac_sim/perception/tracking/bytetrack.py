@@ -38,9 +38,12 @@ def _centre_similarity_class():
 
 
 def track_bytetrack(frames: list[Detections], association: str = "iou_enlarged", gate_px: float = 12.0,
-                    box_scale: float = 3.0, min_similarity: float = 0.1, score_split: float = 0.5) -> TrackResult:
+                    box_scale: float = 3.0, min_similarity: float = 0.1, score_split: float | None = None) -> TrackResult:
     """Track markers over ``frames`` (one Detections per frame, in order). ``association``: ``iou_enlarged``
-    (default: boxes ``box_scale`` times larger), ``centre`` (centre distance) or ``iou`` (the detector's boxes)."""
+    (default: boxes ``box_scale`` times larger), ``centre`` (centre distance) or ``iou`` (the detector's boxes).
+    ``score_split``: ByteTrack's split between high-score detections (associated first; the only ones that start a
+    track) and low-score ones (only continue a track); by default the detector's ``Detections.confident_from``
+    (the learned detector's 0.5; 0 for the blob baseline, so every blob can start a track)."""
     import supervision as sv
     from trackers import ByteTrackTracker
     from trackers.utils.iou import IoU
@@ -48,6 +51,8 @@ def track_bytetrack(frames: list[Detections], association: str = "iou_enlarged",
     if association not in ("centre", "iou", "iou_enlarged"):
         raise ValueError(f"unknown association {association!r} (centre, iou or iou_enlarged)")
     sim = _centre_similarity_class()(gate_px) if association == "centre" else IoU()
+    if score_split is None:
+        score_split = min((d.confident_from for d in frames), default=0.5)
     tracker = ByteTrackTracker(lost_track_buffer=30, frame_rate=30.0, track_activation_threshold=score_split,
                                minimum_consecutive_frames=1, minimum_iou_threshold=min_similarity,
                                high_conf_det_threshold=score_split, iou=sim)

@@ -124,6 +124,16 @@ def train_detector(datasets: list[Path], out: Path, cfg: TrainConfig = TrainConf
     train, val = load_samples([Path(d) for d in datasets], cfg.max_images)
     whites = [s.white for s in train if s.white is not None]
     sizes = sorted({(s.image.shape[1], s.image.shape[0]) for s in train + val})
+    multiple = 16 if cfg.context else 8  # MarkerNet's coarsest stride (network.py)
+    if cfg.crop_px % multiple:
+        raise ValueError(f"crop {cfg.crop_px} px: must be a multiple of {multiple}"
+                         + (" with the context level" if cfg.context else ""))
+    odd = [f"{w}x{h}" for w, h in sizes if w % multiple or h % multiple]
+    if odd:
+        raise PerceptionInputError(", ".join(map(str, datasets)), f"images of {', '.join(odd)} px: MarkerNet needs "
+                                   f"widths and heights that are multiples of {multiple}",
+                                   "render the datasets at such a size" + (", or train without --context"
+                                                                          if cfg.context else ""))
     net = MarkerNet(cfg.width, cfg.context).to(device).train()
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.learning_rate, weight_decay=1e-4)
     warmup = max(1, cfg.steps // 20)
