@@ -187,3 +187,26 @@ def test_output_folder_of_something_else_is_refused_unless_overwrite(tmp_path):
     r = runner.invoke(app, ["simulate", press_scene, "--out", str(sim)])
     assert r.exit_code == 2 and "another scene ('tiny_rest')" in _one_line(r.output)
     assert json.loads((sim / "summary.json").read_text())["scene"] == "tiny_rest"
+
+
+def test_a_rerun_that_crashes_leaves_the_earlier_run_as_it_was(tmp_path, monkeypatch):
+    """A run into a folder with an earlier run of the scene is staged beside it and moved in when it ends: a
+    crash (or Ctrl-C) part way leaves the earlier frames, picture and summary, and no staging folder."""
+    import transtac_sim.simulation as simulation
+
+    scene, sim = str(FIXTURES / "tiny_rest.toml"), tmp_path / "sim"
+    assert runner.invoke(app, ["simulate", scene, "--out", str(sim), "--frames", "3"]).exit_code == 0
+    before = {p.relative_to(sim): p.read_bytes() for p in sim.rglob("*") if p.is_file()}
+    real = simulation.simulate_frames
+
+    def crashing(setup, frames, clock):
+        for f in real(setup, frames, clock):
+            if f.frame == 1:
+                raise KeyboardInterrupt
+            yield f
+
+    monkeypatch.setattr(simulation, "simulate_frames", crashing)
+    r = runner.invoke(app, ["simulate", scene, "--out", str(sim), "--frames", "2"])
+    assert r.exit_code != 0
+    assert {p.relative_to(sim): p.read_bytes() for p in sim.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]

@@ -19,13 +19,18 @@ DIR/displacement.png    the last written frame's displacement field (reports/dis
 ```
 A run that fails at frame k keeps frames 0..k-1, records the failure in summary.json and still draws
 frame k-1. A folder is written into only when it is empty, new, or holds an earlier ``simulate`` output
-of the same scene (whose frame files are then replaced), unless ``overwrite`` is given.
+of the same scene (whose frame files are then replaced), unless ``overwrite`` is given. A run into a folder
+that holds files already is written into a hidden folder beside it (``.<name>.*.partial``) and moved in when it
+ends (done, or failed at a frame): an interrupted or crashed run leaves the earlier one as it was.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -106,6 +111,19 @@ def _clear_previous(out: Path) -> None:
     (out / "displacement.png").unlink(missing_ok=True)
 
 
+def _move_run(work: Path, out: Path) -> None:
+    """Replace the earlier run in ``out`` by the finished one staged in ``work`` (its frame files, mesh, picture,
+    then its summary, each moved atomically), and remove ``work``."""
+    _clear_previous(out)
+    (out / "frames").mkdir(exist_ok=True)
+    for p in sorted((work / "frames").iterdir()) if (work / "frames").is_dir() else []:
+        os.replace(p, out / "frames" / p.name)
+    for name in ("mesh.npz", "displacement.png", "summary.json"):
+        if (work / name).exists():
+            os.replace(work / name, out / name)
+    shutil.rmtree(work)
+
+
 def _mesh_arrays(setup: SceneSetup, meshed) -> dict[str, np.ndarray]:
     m = setup.sensor.markers_rest_gel_mm
     arrays = {"gel_size_mm": np.asarray(setup.sensor.gel_size_mm, dtype=np.float64),
@@ -175,11 +193,13 @@ def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = Non
     check_output_folder(out, scene_config, overwrite)
     total = frame_count(setup, frames)
     report = SimulateReport(out, total)
+    staged = out.is_dir() and any(out.iterdir())  # an earlier run's files stay until this one ends
+    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent)) if staged else out
     clock = StageClock()
     per_frame: list[float] = []
 
     def summary(status: str) -> None:
-        write_json(out / "summary.json", {
+        write_json(work / "summary.json", {
             "kind": KIND, "format_version": FORMAT_VERSION, "generator": {"name": "transtac_sim", "version": __version__},
             "scene": setup.scene.name, "scene_file": str(setup.path), "scene_config": scene_config,
             "status": status, "frames_requested": total, "frames_written": report.frames_written,
@@ -191,7 +211,6 @@ def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = Non
         })
 
     out.mkdir(parents=True, exist_ok=True)
-    _clear_previous(out)
     summary("running")
     meshed = None
     last: PhysicsFrame | None = None
@@ -201,12 +220,12 @@ def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = Non
 
             with clock("mesh"):
                 meshed = mesh_gel(setup)
-        write_npz(out / "mesh.npz", **_mesh_arrays(setup, meshed))
+        write_npz(work / "mesh.npz", **_mesh_arrays(setup, meshed))
         t_frame = time.perf_counter()
         try:
             for phys in simulation.simulate_frames(setup, total, clock):
                 with clock("write"):
-                    record = write_frame(out, setup, phys)
+                    record = write_frame(work, setup, phys)
                 per_frame.append(time.perf_counter() - t_frame)
                 t_frame = time.perf_counter()
                 last = phys
@@ -224,12 +243,18 @@ def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = Non
             report.failure = {"frame": e.frame, "message": message}
         if last is not None:
             with clock("figure"):
-                report.figure = draw_frame(out / "displacement.png", setup, last, meshed)
+                report.figure = draw_frame(work / "displacement.png", setup, last, meshed)
     except BaseException as e:
         report.failure = {"frame": report.frames_written, "message": f"{type(e).__name__}: {e}"}
-        summary("failed")
+        if staged:  # the earlier run stays as it was
+            shutil.rmtree(work, ignore_errors=True)
+        else:
+            summary("failed")
         raise
     report.timings = dict(clock.seconds)
     report.seconds = time.perf_counter() - t0
     summary("failed" if report.failure else "done")
+    if staged:
+        _move_run(work, out)
+        report.figure = out / report.figure.name if report.figure else None
     return report
