@@ -10,6 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -80,3 +81,13 @@ def test_calibrate_says_when_the_board_is_not_found(tmp_path: Path):
                                    "--board", "9x6", "--square-mm", "2", "--out", str(out)])
     text = " ".join(res.output.split())
     assert res.exit_code == 2 and "only 0 of 2 pairs" in text and "--board" in text and not out.exists()
+
+
+@pytest.mark.parametrize("board, square, message", [("0x0", "2", "at least 2x2"), ("-3x6", "2", "at least 2x2"),
+                                                     ("9x6", "0", "--square-mm 0.0")])
+def test_calibrate_refuses_a_board_or_square_size_that_cannot_be(tmp_path: Path, board: str, square: str,
+                                                                  message: str):
+    out = tmp_path / "calibration.json"
+    res = CliRunner().invoke(app, ["calibrate", "--left", str(tmp_path), "--right", str(tmp_path), "--board", board,
+                                   "--square-mm", square, "--out", str(out)])
+    assert res.exit_code == 2 and message in " ".join(res.output.split()) and not out.exists()

@@ -145,3 +145,17 @@ def test_dataset_commands_take_the_complete_frames_and_name_a_missing_view(tmp_p
     res = runner.invoke(app, ["reconstruct", "--dataset", str(ds), "--detector", "blob", "--out", str(tmp_path / "r")])
     text = " ".join(res.output.split())
     assert res.exit_code == 2 and "000001" in text and "right_uv.png" in text and not (tmp_path / "r").exists()
+
+
+def test_device_camera_and_output_mistakes_are_named(images: Path, tmp_path: Path):
+    """An unknown --device, a GPU asked for where torch has none, a folder as --out and an unknown --camera each
+    end with one line saying what to change, and nothing written."""
+    res, text = _detect([str(images), "--device", "tpu"], tmp_path / "d.json")
+    assert res.exit_code == 2 and "auto, cpu or cuda" in text and not (tmp_path / "d.json").exists()
+    if not torch.cuda.is_available():
+        res, text = _detect([str(images), "--device", "cuda"], tmp_path / "d.json")
+        assert res.exit_code == 2 and "no CUDA GPU" in text and not (tmp_path / "d.json").exists()
+    res, text = _detect([str(images), "--method", "blob"], images)
+    assert res.exit_code == 2 and "is a folder" in text and sorted(p.name for p in images.iterdir()) == ["000.png", "001.png"]
+    res = runner.invoke(app, ["track", str(images), "--camera", "middle", "--detector", "blob", "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "unknown camera 'middle'" in " ".join(res.output.split())

@@ -87,6 +87,9 @@ def test_bad_inputs_name_the_file_and_write_nothing(tmp_path: Path):
     res = runner.invoke(app, ["reconstruct", "--calibration", str(root / "calibration.json"), "--left", str(root / "video.mp4"),
                               "--right", str(root / "video.mp4"), "--out", str(tmp_path / "out")])
     assert res.exit_code == 2 and "video cannot be opened" in " ".join(res.output.split()) and not (tmp_path / "out").exists()
+    res = runner.invoke(app, ["reconstruct", "--dataset", str(root), "--calibration", str(root / "calibration.json"),
+                              "--out", str(tmp_path / "out")])
+    assert res.exit_code == 2 and "--dataset alone" in " ".join(res.output.split()) and not (tmp_path / "out").exists()
     calib = _calibration()
     del calib["T"]
     (root / "calibration.json").write_text(json.dumps(calib))
@@ -129,3 +132,25 @@ def test_preview_video_has_a_frame_per_stereo_frame(tmp_path: Path):
         count, shape = count + 1, frame.shape
     assert count == 3 and shape[1] == 3 * SHAPE[1]  # left, right and the depth panel
     assert not (tmp_path / "out" / "preview.png").exists()
+
+
+def test_output_folder_of_something_else_is_refused_and_a_rerun_replaces_its_own_files(tmp_path: Path):
+    """--out must be new, empty or an earlier reconstruct output: a folder of other files is refused with nothing
+    changed; a re-run with fewer frames replaces the earlier run's files, none of them left stale."""
+    root, _ = _scene(tmp_path, frames=2)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "summary.json").write_text('{"kind": "transtac-sim simulate"}')
+    res, text = _run(root, other)
+    assert res.exit_code == 2 and "holds no reconstruct output" in text
+    assert [p.name for p in other.iterdir()] == ["summary.json"]
+    out = tmp_path / "out"
+    assert _run(root, out)[0].exit_code == 0
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["000000.json", "000001.json"]
+    for cam in ("left", "right"):
+        (root / cam / "001.png").unlink()
+    res, _ = _run(root, out)
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["000000.json"]
+    assert json.loads((out / "summary.json").read_text())["frames"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json", "left", "other", "out", "right"]

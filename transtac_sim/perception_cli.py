@@ -172,6 +172,10 @@ def register(app: typer.Typer) -> None:
             cols, rows = (int(x) for x in board.lower().split("x"))
         except ValueError:
             _fail(ValueError(f"--board {board!r}: give inner corners as COLUMNSxROWS, e.g. 9x6"))
+        if cols < 2 or rows < 2:
+            _fail(ValueError(f"--board {board!r}: at least 2x2 inner corners"))
+        if square_mm <= 0.0:
+            _fail(ValueError(f"--square-mm {square_mm}: the squares' size, > 0 mm"))
         try:
             with console.status("finding the board and calibrating..."):
                 rep = calibrate_stereo(left, right, out, (cols, rows), square_mm)

@@ -19,6 +19,7 @@ import numpy as np
 
 from transtac_sim.perception.detection import Detections
 from transtac_sim.perception.detection.blob import detect_blobs
+from transtac_sim.perception.errors import output_file
 from transtac_sim.perception.images import find_images, read_color_image
 from transtac_sim.writer.atomic import write_json
 
@@ -57,6 +58,7 @@ def detect_images(target: Path, out: Path, method: str = "learned", model: Path 
                   progress: Callable[[int, int], None] | None = None) -> DetectReport:
     """Detect, write ``out`` and, if asked, ``preview`` (the first image with its markers circled)."""
     t0 = time.perf_counter()
+    out = output_file(out)
     refs = find_images(Path(target))
     images = [read_color_image(r.path) for r in refs]  # all checked before any work
     detect, model_name = make_detector(method, model, device, refine,

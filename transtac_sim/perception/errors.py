@@ -5,6 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def output_file(path: Path | str) -> Path:
+    """``path`` as a file to write; PerceptionInputError where it is a folder."""
+    path = Path(path)
+    if path.is_dir():
+        raise PerceptionInputError(path, "is a folder", "give the file to write, e.g. --out results.json")
+    return path
+
+
 class PerceptionInputError(Exception):
     """Bad input (a missing or unreadable image, a wrong colour format, a model file that is not one).
 

@@ -14,12 +14,14 @@ triangulated markers, or ``"distance-aware"``: markers plus object features, whi
 Output (DESIGN.md section 6; ``docs/formats.md``): ``OUT/frames/<frame:06d>.json`` per frame,
 ``OUT/summary.json`` and ``OUT/preview.png`` (the last frame's matches drawn on both views beside its
 surface coloured by depth) or, with ``preview="video"``, ``OUT/preview.mp4`` of every frame. Every input
-is read and checked before anything is written; each file is written atomically. A frame with fewer than
-three markers in a view is written with zero matches and its reason.
+is read and checked before anything is written; each file is written atomically. ``OUT`` is new, empty or an
+earlier reconstruct output, whose files are replaced when this run ends (an interrupted run leaves them as they
+were). A frame with fewer than three markers in a view is written with zero matches and its reason.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -45,6 +47,7 @@ from transtac_sim.perception.stereo.dense import OnnxStereo
 from transtac_sim.perception.stereo.triangulation import triangulate_linear, triangulate_refracted
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
 from transtac_sim.writer.atomic import write_json
+from transtac_sim.writer.staging import staged_output
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 MIN_MARKERS = 3
@@ -57,6 +60,33 @@ class ReconstructReport:
     mean_matches: float
     triangulation: str
     seconds: dict[str, float]
+
+
+def check_output_folder(out: Path) -> None:
+    """Raise PerceptionInputError unless ``out`` is new, empty or an earlier reconstruct output (its summary.json
+    has ``matcher`` and ``mean_matches``), whose files this run replaces when it ends (writer/staging.py)."""
+    out = Path(out)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise PerceptionInputError(out, "exists and is not a folder", "choose another --out")
+    if not any(out.iterdir()):
+        return
+    try:
+        old = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        old = None
+    if not (isinstance(old, dict) and {"matcher", "mean_matches"} <= old.keys()):
+        raise PerceptionInputError(out, "is not empty and holds no reconstruct output",
+                                   "choose a new or empty --out (nothing was changed)")
+
+
+def _clear_previous(out: Path) -> None:
+    """Remove an earlier reconstruct run's files from ``out`` (only those this command writes)."""
+    for pattern in ("frames/[0-9]*.json", "dense/[0-9]*.exr", "dense/[0-9]*.ply", "preview.png", "preview.mp4",
+                    "summary.json"):
+        for p in out.glob(pattern):
+            p.unlink()
 
 
 def _frames(source: Path) -> tuple[list[str], list[np.ndarray]]:
@@ -83,6 +113,9 @@ def _frames(source: Path) -> tuple[list[str], list[np.ndarray]]:
 def _inputs(dataset: Path | None, sequence: str | None, calibration: Path | None, left: Path | None,
             right: Path | None, kind: str = "uv"):
     if dataset is not None:
+        if calibration is not None or left is not None or right is not None:
+            raise PerceptionInputError("reconstruct", "--dataset brings its own calibration.json and images",
+                                       "pass --dataset alone, or --calibration with --left and --right")
         if not is_dataset(Path(dataset)):
             raise PerceptionInputError(dataset, "not a dataset folder (no sequences/)",
                                        "pass a folder written by `transtac-sim generate`")
@@ -121,6 +154,7 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
         raise ValueError(f"unknown anchors {anchors!r} ({' or '.join(ANCHOR_MODES)})")
     if preview not in ("png", "video", "none"):
         raise ValueError(f"unknown preview {preview!r} (png, video or none)")
+    check_output_folder(out)
     stereo = None
     if dense == "onnx":
         if stereo_model is None:
@@ -154,47 +188,49 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
     tracks = track_bytetrack([d[0] for d in dets])
     t_track = (time.perf_counter() - t0) / n
     out = Path(out)
-    params = MatchParams()
-    total = 0
-    panels: list[np.ndarray] = []
-    for f in range(n):
-        dl, dr = dets[f]
-        record = {"frame": f, "source": {"left": names_l[f], "right": names_r[f]},
-                  "left": np.round(dl.uv, 3).tolist(), "right": np.round(dr.uv, 3).tolist(), "matches": []}
-        t1 = time.perf_counter()
-        if len(dl) < MIN_MARKERS or len(dr) < MIN_MARKERS:
-            pairs = np.zeros((0, 2), int)
-            record["reason"] = f"too few markers (left {len(dl)}, right {len(dr)}; at least {MIN_MARKERS} each)"
-        elif matcher in MATCHERS:
-            pairs = MATCHERS[matcher](dl.uv, dr.uv, calib, params)
-        else:
-            pairs = image_matcher(matcher, frames_l[f], frames_r[f])(dl.uv, dr.uv, calib, params)
-        t2 = time.perf_counter()
-        pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
-        lu, ru = dl.uv[pairs[:, 0]], dr.uv[pairs[:, 1]]
-        xyz = triangulate_refracted(calib, flat, lu, ru) if flat is not None else triangulate_linear(calib, lu, ru)
-        t3 = time.perf_counter()
-        record["matches"] = [{"left": int(i), "right": int(j), "track_id": int(tracks.track_ids[f][i]),
-                              "xyz_mm": np.round(p, 4).tolist()} for (i, j), p in zip(pairs, xyz, strict=True)]
-        dense_z = None
-        if whites is not None:
-            record["dense"], dense_z = fuse_frame(calib, whites[2][f], whites[4][f], lu, ru, xyz,
-                                                  out / "dense" / f"{f:06d}", stack=flat, model=stereo, anchors=anchors)
-        record["seconds"] = {"detect": t_detect, "track": t_track, "match": t2 - t1, "triangulate": t3 - t2,
-                             "dense": time.perf_counter() - t3 if whites is not None else 0.0}
-        write_json(out / "frames" / f"{f:06d}.json", record)
-        total += len(pairs)
-        if preview == "video" or (preview == "png" and f == n - 1):
-            panels.append(reconstruction_panel(frames_l[f], frames_r[f], dl.uv, dr.uv, pairs, xyz, dense_z))
-        if progress:
-            progress(f + 1, n)
-    if preview == "png":
-        write_png(out / "preview.png", panels[-1])
-    elif preview == "video":
-        write_video(out / "preview.mp4", panels)
-    report = ReconstructReport(out, n, total / n, "refraction-aware" if flat is not None else "linear",
-                               {"detect": t_detect, "track": t_track})
-    write_json(out / "summary.json", {"frames": n, "mean_matches": report.mean_matches, "matcher": matcher,
-                                      "detector": detector, "triangulation": report.triangulation,
-                                      "seconds_per_frame": report.seconds})
+    with staged_output(out, _clear_previous, last=("summary.json",)) as work:
+        params = MatchParams()
+        total = 0
+        panels: list[np.ndarray] = []
+        for f in range(n):
+            dl, dr = dets[f]
+            record = {"frame": f, "source": {"left": names_l[f], "right": names_r[f]},
+                      "left": np.round(dl.uv, 3).tolist(), "right": np.round(dr.uv, 3).tolist(), "matches": []}
+            t1 = time.perf_counter()
+            if len(dl) < MIN_MARKERS or len(dr) < MIN_MARKERS:
+                pairs = np.zeros((0, 2), int)
+                record["reason"] = f"too few markers (left {len(dl)}, right {len(dr)}; at least {MIN_MARKERS} each)"
+            elif matcher in MATCHERS:
+                pairs = MATCHERS[matcher](dl.uv, dr.uv, calib, params)
+            else:
+                pairs = image_matcher(matcher, frames_l[f], frames_r[f])(dl.uv, dr.uv, calib, params)
+            t2 = time.perf_counter()
+            pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+            lu, ru = dl.uv[pairs[:, 0]], dr.uv[pairs[:, 1]]
+            xyz = triangulate_refracted(calib, flat, lu, ru) if flat is not None else triangulate_linear(calib, lu, ru)
+            t3 = time.perf_counter()
+            record["matches"] = [{"left": int(i), "right": int(j), "track_id": int(tracks.track_ids[f][i]),
+                                  "xyz_mm": np.round(p, 4).tolist()} for (i, j), p in zip(pairs, xyz, strict=True)]
+            dense_z = None
+            if whites is not None:
+                record["dense"], dense_z = fuse_frame(calib, whites[2][f], whites[4][f], lu, ru, xyz,
+                                                      work / "dense" / f"{f:06d}", stack=flat, model=stereo,
+                                                      anchors=anchors)
+            record["seconds"] = {"detect": t_detect, "track": t_track, "match": t2 - t1, "triangulate": t3 - t2,
+                                 "dense": time.perf_counter() - t3 if whites is not None else 0.0}
+            write_json(work / "frames" / f"{f:06d}.json", record)
+            total += len(pairs)
+            if preview == "video" or (preview == "png" and f == n - 1):
+                panels.append(reconstruction_panel(frames_l[f], frames_r[f], dl.uv, dr.uv, pairs, xyz, dense_z))
+            if progress:
+                progress(f + 1, n)
+        if preview == "png":
+            write_png(work / "preview.png", panels[-1])
+        elif preview == "video":
+            write_video(work / "preview.mp4", panels)
+        report = ReconstructReport(out, n, total / n, "refraction-aware" if flat is not None else "linear",
+                                   {"detect": t_detect, "track": t_track})
+        write_json(work / "summary.json", {"frames": n, "mean_matches": report.mean_matches, "matcher": matcher,
+                                          "detector": detector, "triangulation": report.triangulation,
+                                          "seconds_per_frame": report.seconds})
     return report

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from transtac_sim.perception.detect import make_detector
+from transtac_sim.perception.errors import output_file
 from transtac_sim.perception.images import find_images, is_dataset, read_color_image, sequence_files
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
 from transtac_sim.perception.tracking.flow import track_flow
@@ -45,6 +46,9 @@ def track_images(target: Path, out: Path, method: str = "bytetrack", detector: s
                  device: str = "auto", progress: Callable[[int, int], None] | None = None) -> TrackReport:
     if method not in ("bytetrack", "flow"):
         raise ValueError(f"unknown tracking method {method!r} (bytetrack or flow)")
+    if camera not in ("left", "right"):
+        raise ValueError(f"unknown camera {camera!r} (left or right)")
+    out = output_file(out)
     refs = sequence_images(target, sequence, camera)
     images = [read_color_image(r.path) for r in refs]
     detect, model_name = make_detector(detector, model, device, images=[(str(r.path), im) for r, im in zip(refs, images, strict=True)])

@@ -20,17 +20,14 @@ DIR/displacement.png    the last written frame's displacement field (reports/dis
 A run that fails at frame k keeps frames 0..k-1, records the failure in summary.json and still draws
 frame k-1. A folder is written into only when it is empty, new, or holds an earlier ``simulate`` output
 of the same scene (whose frame files are then replaced), unless ``overwrite`` is given. A run into a folder
-that holds files already is written into a hidden folder beside it (``.<name>.*.partial``) and moved in when it
-ends (done, or failed at a frame): an interrupted or crashed run leaves the earlier one as it was.
+that holds files already is staged beside it and moved in when it ends, done or failed at a frame (staging.py):
+an interrupted or crashed run leaves the earlier one as it was.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -42,6 +39,7 @@ from transtac_sim import __version__
 from transtac_sim.scene_setup import SceneSetup
 from transtac_sim.simulation import PhysicsFrame, SimulationFailed
 from transtac_sim.writer.atomic import write_json, write_npz
+from transtac_sim.writer.staging import staged_output
 
 KIND = "transtac-sim simulate"
 FORMAT_VERSION = 1
@@ -111,19 +109,6 @@ def _clear_previous(out: Path) -> None:
     (out / "displacement.png").unlink(missing_ok=True)
 
 
-def _move_run(work: Path, out: Path) -> None:
-    """Replace the earlier run in ``out`` by the finished one staged in ``work`` (its frame files, mesh, picture,
-    then its summary, each moved atomically), and remove ``work``."""
-    _clear_previous(out)
-    (out / "frames").mkdir(exist_ok=True)
-    for p in sorted((work / "frames").iterdir()) if (work / "frames").is_dir() else []:
-        os.replace(p, out / "frames" / p.name)
-    for name in ("mesh.npz", "displacement.png", "summary.json"):
-        if (work / name).exists():
-            os.replace(work / name, out / name)
-    shutil.rmtree(work)
-
-
 def _mesh_arrays(setup: SceneSetup, meshed) -> dict[str, np.ndarray]:
     m = setup.sensor.markers_rest_gel_mm
     arrays = {"gel_size_mm": np.asarray(setup.sensor.gel_size_mm, dtype=np.float64),
@@ -179,12 +164,49 @@ def draw_frame(path: Path, setup: SceneSetup, phys: PhysicsFrame, meshed) -> Pat
         indenters=views)
 
 
+def _simulate_into(work: Path, setup: SceneSetup, total: int, report: SimulateReport, clock, per_frame: list[float],
+                   summary: Callable[[str], None], on_frame: Callable[[int, int, float], None] | None):
+    """Mesh (a contact scene), write mesh.npz, then solve and write ``total`` frames into ``work``, updating
+    ``report``, ``per_frame`` (s) and the running summary; a SimulationFailed ends the frames with
+    ``report.failure`` set. Returns the last frame written (or None) and the meshed gel (or None)."""
+    from transtac_sim import simulation
+
+    meshed = None
+    if setup.has_contact:
+        from transtac_sim.meshing import mesh_gel
+
+        with clock("mesh"):
+            meshed = mesh_gel(setup)
+    write_npz(work / "mesh.npz", **_mesh_arrays(setup, meshed))
+    last: PhysicsFrame | None = None
+    t_frame = time.perf_counter()
+    try:
+        for phys in simulation.simulate_frames(setup, total, clock):
+            with clock("write"):
+                record = write_frame(work, setup, phys)
+            per_frame.append(time.perf_counter() - t_frame)
+            t_frame = time.perf_counter()
+            last = phys
+            report.frames_written = phys.frame + 1
+            forces = [np.linalg.norm(f) for f in phys.forces_n]
+            report.max_force_n = max([report.max_force_n, *map(float, forces)])
+            report.max_marker_displacement_mm = max(report.max_marker_displacement_mm,
+                                                    record["max_marker_displacement_mm"])
+            summary("running")
+            if on_frame:
+                on_frame(report.frames_written, total, per_frame[-1])
+    except SimulationFailed as e:
+        prefix = f"frame {e.frame}: "
+        message = str(e)[len(prefix):] if str(e).startswith(prefix) else str(e)
+        report.failure = {"frame": e.frame, "message": message}
+    return last, meshed
+
+
 def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = None, overwrite: bool = False,
                        on_frame: Callable[[int, int, float], None] | None = None) -> SimulateReport:
     """Simulate ``frames`` frames of ``setup`` into ``out`` (module docstring). ``on_frame(done, total,
     seconds of that frame)`` reports progress. A SimulationFailed ends the run with ``report.failure`` set;
-    any other exception is recorded in summary.json and raised."""
-    from transtac_sim import simulation
+    any other exception is recorded in summary.json (where no earlier run is replaced) and raised."""
     from transtac_sim.dataset.sequence import StageClock
 
     t0 = time.perf_counter()
@@ -193,68 +215,37 @@ def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = Non
     check_output_folder(out, scene_config, overwrite)
     total = frame_count(setup, frames)
     report = SimulateReport(out, total)
-    staged = out.is_dir() and any(out.iterdir())  # an earlier run's files stay until this one ends
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent)) if staged else out
     clock = StageClock()
     per_frame: list[float] = []
+    with staged_output(out, _clear_previous, last=("summary.json",)) as work:
 
-    def summary(status: str) -> None:
-        write_json(work / "summary.json", {
-            "kind": KIND, "format_version": FORMAT_VERSION, "generator": {"name": "transtac_sim", "version": __version__},
-            "scene": setup.scene.name, "scene_file": str(setup.path), "scene_config": scene_config,
-            "status": status, "frames_requested": total, "frames_written": report.frames_written,
-            "failure": report.failure, "contact": setup.has_contact,
-            "indenters": [i.config.name for i in setup.indenters], "markers": len(setup.sensor.markers_rest_gel_mm),
-            "max_force_n": report.max_force_n, "max_marker_displacement_mm": report.max_marker_displacement_mm,
-            "timings_s": clock.seconds, "seconds_per_frame": per_frame, "seconds": time.perf_counter() - t0,
-            "displacement_png": report.figure.name if report.figure else None,
-        })
+        def summary(status: str) -> None:
+            write_json(work / "summary.json", {
+                "kind": KIND, "format_version": FORMAT_VERSION,
+                "generator": {"name": "transtac_sim", "version": __version__},
+                "scene": setup.scene.name, "scene_file": str(setup.path), "scene_config": scene_config,
+                "status": status, "frames_requested": total, "frames_written": report.frames_written,
+                "failure": report.failure, "contact": setup.has_contact,
+                "indenters": [i.config.name for i in setup.indenters],
+                "markers": len(setup.sensor.markers_rest_gel_mm),
+                "max_force_n": report.max_force_n, "max_marker_displacement_mm": report.max_marker_displacement_mm,
+                "timings_s": clock.seconds, "seconds_per_frame": per_frame, "seconds": time.perf_counter() - t0,
+                "displacement_png": report.figure.name if report.figure else None,
+            })
 
-    out.mkdir(parents=True, exist_ok=True)
-    summary("running")
-    meshed = None
-    last: PhysicsFrame | None = None
-    try:
-        if setup.has_contact:
-            from transtac_sim.meshing import mesh_gel
-
-            with clock("mesh"):
-                meshed = mesh_gel(setup)
-        write_npz(work / "mesh.npz", **_mesh_arrays(setup, meshed))
-        t_frame = time.perf_counter()
+        summary("running")
         try:
-            for phys in simulation.simulate_frames(setup, total, clock):
-                with clock("write"):
-                    record = write_frame(work, setup, phys)
-                per_frame.append(time.perf_counter() - t_frame)
-                t_frame = time.perf_counter()
-                last = phys
-                report.frames_written = phys.frame + 1
-                forces = [np.linalg.norm(f) for f in phys.forces_n]
-                report.max_force_n = max([report.max_force_n, *map(float, forces)])
-                report.max_marker_displacement_mm = max(report.max_marker_displacement_mm,
-                                                        record["max_marker_displacement_mm"])
-                summary("running")
-                if on_frame:
-                    on_frame(report.frames_written, total, per_frame[-1])
-        except SimulationFailed as e:
-            prefix = f"frame {e.frame}: "
-            message = str(e)[len(prefix):] if str(e).startswith(prefix) else str(e)
-            report.failure = {"frame": e.frame, "message": message}
-        if last is not None:
-            with clock("figure"):
-                report.figure = draw_frame(work / "displacement.png", setup, last, meshed)
-    except BaseException as e:
-        report.failure = {"frame": report.frames_written, "message": f"{type(e).__name__}: {e}"}
-        if staged:  # the earlier run stays as it was
-            shutil.rmtree(work, ignore_errors=True)
-        else:
-            summary("failed")
-        raise
-    report.timings = dict(clock.seconds)
-    report.seconds = time.perf_counter() - t0
-    summary("failed" if report.failure else "done")
-    if staged:
-        _move_run(work, out)
-        report.figure = out / report.figure.name if report.figure else None
+            last, meshed = _simulate_into(work, setup, total, report, clock, per_frame, summary, on_frame)
+            if last is not None:
+                with clock("figure"):
+                    report.figure = draw_frame(work / "displacement.png", setup, last, meshed)
+        except BaseException as e:
+            report.failure = {"frame": report.frames_written, "message": f"{type(e).__name__}: {e}"}
+            if work == out:  # staged elsewhere, the earlier run stays as it was
+                summary("failed")
+            raise
+        report.timings = dict(clock.seconds)
+        report.seconds = time.perf_counter() - t0
+        summary("failed" if report.failure else "done")
+    report.figure = out / report.figure.name if report.figure else None
     return report

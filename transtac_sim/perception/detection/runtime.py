@@ -31,6 +31,10 @@ DEFAULT_SCORE_THRESHOLD = 0.4
 class LearnedDetector:
     def __init__(self, model_path: Path | None = None, *, device: str = "auto", backend: str = "auto",
                  score_threshold: float = DEFAULT_SCORE_THRESHOLD, refine: bool = True) -> None:
+        if not (device in ("auto", "cpu", "cuda") or device.startswith("cuda:")):
+            raise ValueError(f"--device {device!r}: auto, cpu or cuda")
+        if device.startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"--device {device}: torch finds no CUDA GPU here; use --device cpu (or auto)")
         self.model_path = Path(model_path) if model_path else DEFAULT_MODEL
         self.net, self.meta = load_model(self.model_path)
         self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device

@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from transtac_sim.perception.errors import PerceptionInputError
+from transtac_sim.perception.errors import PerceptionInputError, output_file
 from transtac_sim.perception.images import find_images, read_image
 from transtac_sim.writer.atomic import write_json
 
@@ -43,6 +43,7 @@ def find_corners(image: np.ndarray, board: tuple[int, int]) -> np.ndarray | None
 
 
 def calibrate_stereo(left: Path, right: Path, out: Path, board: tuple[int, int], square_mm: float) -> CalibrationReport:
+    out = output_file(out)
     refs_l, refs_r = find_images(Path(left)), find_images(Path(right))
     if len(refs_l) != len(refs_r):
         raise PerceptionInputError(f"{left}, {right}", f"{len(refs_l)} left images but {len(refs_r)} right images",
@@ -67,10 +68,14 @@ def calibrate_stereo(left: Path, right: Path, out: Path, board: tuple[int, int],
                                    f"of {len(refs_l)} pairs (at least {MIN_PAIRS} needed)",
                                    "check --board (inner corners, columns x rows) and take more views")
     obj = [grid] * len(pts_l)
-    rms_l, K_l, d_l, _, _ = cv2.calibrateCamera(obj, pts_l, size, None, None)
-    rms_r, K_r, d_r, _, _ = cv2.calibrateCamera(obj, pts_r, size, None, None)
-    rms, K_l, d_l, K_r, d_r, R, T, _, _ = cv2.stereoCalibrate(
-        obj, pts_l, pts_r, K_l, d_l, K_r, d_r, size, flags=cv2.CALIB_FIX_INTRINSIC)
+    try:
+        rms_l, K_l, d_l, _, _ = cv2.calibrateCamera(obj, pts_l, size, None, None)
+        rms_r, K_r, d_r, _, _ = cv2.calibrateCamera(obj, pts_r, size, None, None)
+        rms, K_l, d_l, K_r, d_r, R, T, _, _ = cv2.stereoCalibrate(
+            obj, pts_l, pts_r, K_l, d_l, K_r, d_r, size, flags=cv2.CALIB_FIX_INTRINSIC)
+    except cv2.error as e:
+        raise PerceptionInputError(left, f"OpenCV could not calibrate from these views ({e.err})",
+                                   "check --board and --square-mm, and take views of the board at other angles") from None
     write_json(Path(out), {"image_size": list(size), "model": "pinhole", "K_left": K_l.tolist(), "dist_left": d_l.ravel().tolist(),
                            "K_right": K_r.tolist(), "dist_right": d_r.ravel().tolist(), "R": R.tolist(),
                            "T": T.ravel().tolist(), "units": "mm", "rms_px": float(rms)})
