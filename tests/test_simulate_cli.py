@@ -210,3 +210,18 @@ def test_a_rerun_that_crashes_leaves_the_earlier_run_as_it_was(tmp_path, monkeyp
     assert r.exit_code != 0
     assert {p.relative_to(sim): p.read_bytes() for p in sim.rglob("*") if p.is_file()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]
+
+
+def test_written_files_have_the_umasks_permissions(tmp_path):
+    """Files are written atomically through a private (0600) temporary file; they end with the permissions a plain
+    open gives (0666 less the umask), so others can read a dataset where the umask lets them."""
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    if 0o666 & ~mask == 0o600:
+        pytest.skip("this umask gives 0600 either way")
+    sim = tmp_path / "sim"
+    assert runner.invoke(app, ["simulate", str(FIXTURES / "tiny_rest.toml"), "--out", str(sim)]).exit_code == 0
+    for p in (sim / "summary.json", sim / "mesh.npz", sim / "frames" / "000000.json"):
+        assert p.stat().st_mode & 0o777 == 0o666 & ~mask, p

@@ -1,5 +1,6 @@
 """Atomic file writes: write to a temporary name in the same folder, then rename over the target, so a
-reader (or a resumed run) never sees a half-written file."""
+reader (or a resumed run) never sees a half-written file. Files get the permissions a plain ``open`` would give
+them (0666 less the process's umask), not the temporary file's private 0600."""
 
 from __future__ import annotations
 
@@ -13,6 +14,16 @@ from typing import IO
 import numpy as np
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: the process's umask, read once at import (os.umask can only be read by setting it)
+_FILE_MODE = 0o666 & ~_umask()
+
+
 def atomic_write(path: Path, write: Callable[[IO[bytes]], None]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -20,6 +31,7 @@ def atomic_write(path: Path, write: Callable[[IO[bytes]], None]) -> Path:
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
+        os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
