@@ -93,3 +93,39 @@ def test_missing_hardware_model_and_wrong_material_kind(repo_copy: Path):
     hw = edit(repo_copy / "hardware_models/transtac.toml", 'material = "solaris"', 'material = "acrylic"')
     msg = _error(build_sensor, hw)
     assert "gel.material" in msg and "'acrylic' is a dielectric material" in msg
+
+
+def test_nan_and_inf_in_tuples_and_lists(repo_copy: Path):
+    scene = edit(repo_copy / "scenes/press_slide.toml", "start_xy_mm = [0.0, 0.0]",
+                 "start_xy_mm = [nan, 0.0]\nrotation_deg = [0.0, inf, 0.0]")
+    msg = _error(load_scene, scene)
+    assert "indenters[0].start_xy_mm[0]: Input should be a finite number (got nan)" in msg
+    assert "indenters[0].rotation_deg[1]: Input should be a finite number (got inf)" in msg
+    hw = edit(repo_copy / "hardware_models/transtac.toml", "distortion = [-0.12,", "distortion = [nan,")
+    assert "cameras.left.distortion[0]: Input should be a finite number" in _error(load_hardware, hw)
+    mat = edit(repo_copy / "materials/pla_matte_black.toml", "[0.04, 0.04, 0.04]", "[0.04, nan, 0.04]")
+    assert "reflectance_rgb[1]: Input should be a finite number" in _error(load_material, str(mat))
+
+
+def test_light_normal_of_zero_length(repo_copy: Path):
+    hw = edit(repo_copy / "hardware_models/transtac.toml", "normal = [0.0, 0.45, 0.89]", "normal = [0.0, 0.0, 0.0]")
+    assert "lights[0].normal: must be a non-zero vector" in _error(load_hardware, hw)
+
+
+def test_press_through_the_gel(repo_copy: Path):
+    scene = load_scene(edit(repo_copy / "scenes/press_slide.toml", "depth_mm = 1.0", "depth_mm = 5.0"))
+    assert scene.depth_problems(5.0) == [
+        ("indenters[0].trajectory[0].depth_mm", "5.0 mm reaches through the 5.0 mm gel (allowed: < 5.0)")]
+    assert scene.depth_problems(5.5) == []
+    train = load_scene(edit(repo_copy / "scenes/train_random.toml", "[0.4, 1.5]", "[0.4, 6.0]"))
+    assert train.depth_problems(5.0) == [
+        ("randomize.press_depth_mm", "high 6.0 mm reaches through the 5.0 mm gel (allowed: < 5.0)")]
+    deep = edit(repo_copy / "scenes/press_slide.toml", "depth_mm = 5.0", "depth_mm = 40.0")
+    msg = _error(load_setup, deep)
+    assert str(deep) in msg and "indenters[0].trajectory[0].depth_mm: 40.0 mm reaches through the 5.0 mm gel" in msg
+
+
+def test_lens_distortion_that_folds_over(repo_copy: Path):
+    hw = edit(repo_copy / "hardware_models/transtac.toml", "distortion = [-0.12, 0.02,", "distortion = [-0.9, 0.0,")
+    msg = _error(build_sensor, hw)
+    assert str(hw) in msg and "cameras.left.distortion: the lens distortion is not invertible over the image" in msg

@@ -48,6 +48,8 @@ def build_setup(scene: Scene, path: Path, *, marker_seed: int | None = None) -> 
     the marker layout's seed (domain randomisation)."""
     sensor = build_sensor(scene.sensor.hardware, scene.sensor.markers, layout_source=path, relative_to=path.parent,
                           marker_seed=marker_seed)
+    if problems := scene.depth_problems(sensor.hardware.gel.thickness_mm):
+        raise ConfigError(path, problems)
     if not scene.render.distortion:  # the recorded images are ideal pinhole images: say so in the calibration
         sensor = replace(sensor, cameras={k: replace(c, dist=np.zeros_like(c.dist)) for k, c in sensor.cameras.items()})
     placed = []

@@ -56,6 +56,25 @@ def unproject(spec: CameraSpec, uv: np.ndarray) -> np.ndarray:
     return xy.reshape(-1, 2)
 
 
+def invertible_rays(spec: CameraSpec, uv: np.ndarray) -> np.ndarray:
+    """Normalised ideal image coordinates (N, 2) of recorded pixels ``uv`` (N, 2); a ValueError where the lens
+    distortion does not map them back onto themselves (it folds over: no ray is recorded there)."""
+    xy = unproject(spec, uv)
+    err = np.abs(project(spec, np.column_stack([xy, np.ones(len(uv))])) - uv).max()
+    if not err < 1e-3:
+        raise ValueError(f"the lens distortion is not invertible over the image (round trip off by {err:.3g} px)")
+    return xy
+
+
+def image_border(size: tuple[int, int]) -> np.ndarray:
+    """The pixel centres (N, 2) along the edges of a ``size`` = (w, h) image: the pixels furthest from the
+    principal point, where a distortion folds over first (a cheap check of ``invertible_rays``)."""
+    w, h = size
+    u, v = np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)
+    return np.concatenate([np.column_stack([u, np.zeros(w)]), np.column_stack([u, np.full(w, h - 1.0)]),
+                           np.column_stack([np.zeros(h), v]), np.column_stack([np.full(h, w - 1.0), v])])
+
+
 class CameraModel:
     """One camera's render geometry and its post-render effects."""
 
@@ -65,11 +84,7 @@ class CameraModel:
         self.recorded = spec if effects.distortion else dataclasses.replace(spec, dist=np.zeros_like(spec.dist))
         w, h = spec.size
         K = np.asarray(spec.K, float)
-        grid = self._recorded_grid()
-        self.pixel_xy = unproject(self.recorded, grid)  # (H*W, 2) ideal ray of each pixel
-        err = np.abs(project(self.recorded, np.column_stack([self.pixel_xy, np.ones(len(grid))])) - grid).max()
-        if not err < 1e-3:
-            raise ValueError(f"the lens distortion is not invertible over the image (round trip off by {err:.3g} px)")
+        self.pixel_xy = invertible_rays(self.recorded, self._recorded_grid())  # (H*W, 2) ideal ray of each pixel
         if not distorted and spec.model == "pinhole" and np.isclose(K[0, 0], K[1, 1]) and K[0, 1] == 0:
             self.render_K, self.render_size, self._maps = K.copy(), (w, h), None
         else:

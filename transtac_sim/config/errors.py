@@ -16,8 +16,12 @@ class ConfigError(ValueError):
     def __init__(self, source: str | Path, problems: list[tuple[str, str]]):
         self.source = str(source)
         self.problems = problems
-        lines = [f"{self.source}: {key}: {msg}" if key else f"{self.source}: {msg}" for key, msg in problems]
-        super().__init__("invalid configuration\n  " + "\n  ".join(lines))
+        super().__init__("invalid configuration\n  " + "\n  ".join(problem_lines(self.source, problems)))
+
+
+def problem_lines(source: str | Path, problems: list[tuple[str, str]]) -> list[str]:
+    """``<source>: <key>: <what is wrong>`` per problem (``<source>: <what>`` where the key is empty)."""
+    return [f"{source}: {key}: {msg}" if key else f"{source}: {msg}" for key, msg in problems]
 
 
 #: ``kind`` values of the tagged unions in the config models; pydantic puts them in error locations.
@@ -28,6 +32,12 @@ _UNION_TAGS = {
 }
 
 _RANGE_WORDS = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
+#: pydantic's words for a wrong container, in the words of TOML and JSON files.
+_TYPE_WORDS = {
+    "model_type": "should hold keys and values (a TOML table, a JSON object)",
+    "dict_type": "should hold keys and values (a TOML table, a JSON object)",
+    "tuple_type": "should be a list", "list_type": "should be a list",
+}
 
 
 def _key_path(loc: tuple) -> str:
@@ -52,10 +62,15 @@ def _describe(err: dict) -> str:
         return "required key is missing"
     if bounds:
         return f"{given!r} is out of range: allowed {' and '.join(bounds)}"
-    msg = err["msg"].removeprefix("Value error, ")
+    msg = _TYPE_WORDS.get(err["type"]) or err["msg"].removeprefix("Value error, ")
     return f"{msg} (got {given!r})" if given is not None and not isinstance(given, dict) else msg
+
+
+def validation_problems(err: ValidationError) -> list[tuple[str, str]]:
+    """``(key, what is wrong)`` for each error of a pydantic ValidationError, in the words of the files."""
+    return [(_key_path(e["loc"]), _describe(e)) for e in err.errors()]
 
 
 def from_validation_error(source: str | Path, err: ValidationError) -> ConfigError:
     """Turn a pydantic ValidationError into a ConfigError naming ``source`` and each key."""
-    return ConfigError(source, [(_key_path(e["loc"]), _describe(e)) for e in err.errors()])
+    return ConfigError(source, validation_problems(err))

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
+
+from transtac_sim.config.fields import STRICT, Direction
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT
 
 
 class Gel(_Strict):
@@ -68,7 +70,7 @@ class Light(_Strict):
     kind: Literal["uv", "white"]
     center_mm: tuple[float, float, float]
     size_mm: tuple[Annotated[float, Field(gt=0.0)], Annotated[float, Field(gt=0.0)]]
-    normal: tuple[float, float, float]
+    normal: Direction
     radiant_power_mw: float = Field(gt=0.0, le=10_000.0)
     visible_leak: float = Field(default=0.0, ge=0.0, le=1.0, description="visible fraction a UV LED also emits")
 

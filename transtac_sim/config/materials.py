@@ -6,20 +6,21 @@ from functools import cache
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
+from pydantic import BaseModel, Field, TypeAdapter, field_validator
 
+from transtac_sim.config.fields import STRICT
 from transtac_sim.config.loader import parse_model, read_toml, resolve_named_file
 
 
 class _Material(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT
     name: str = Field(min_length=1)
 
 
 class Absorption(BaseModel):
     """Beer-Lambert absorption coefficients (1/mm) in the visible (RGB) and at 365 nm."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT
     visible_rgb_per_mm: tuple[float, float, float] = Field(default=(0.0, 0.0, 0.0))
     uv365_per_mm: float = Field(default=0.0, ge=0.0, le=100.0)
 

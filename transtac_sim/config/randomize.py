@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
+
+from transtac_sim.config.fields import STRICT
 
 Range = Annotated[tuple[float, float], Field(description="[low, high], uniform")]
 
 
 class Randomize(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT
     indenter_meshes: list[str] = Field(default_factory=list, description="choose each indenter's mesh from these (mm)")
     start_xy_mm: tuple[Range, Range] | None = None
     start_gap_mm: Range | None = Field(default=None, description="height of the lowest point above the surface")

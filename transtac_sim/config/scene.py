@@ -6,15 +6,16 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
+from transtac_sim.config.fields import STRICT
 from transtac_sim.config.hardware import MarkerLayout
 from transtac_sim.config.randomize import Randomize
-from transtac_sim.config.trajectory import Segment
+from transtac_sim.config.trajectory import Press, Segment
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT
 
 class SensorRef(_Strict):
     hardware: str = "transtac"
@@ -148,3 +149,19 @@ class Scene(_Strict):
     def frame_count(self) -> int:
         """Frames in the sequence: the longest indenter trajectory (1 for a contact-free scene)."""
         return max((sum(s.frames for s in i.trajectory) for i in self.indenters), default=1)
+
+    def depth_problems(self, gel_thickness_mm: float) -> list[tuple[str, str]]:
+        """``(key, what is wrong)`` for each press depth, or randomised range of them, that reaches the backing
+        through a gel this thick (the gel is known once the scene is assembled: transtac_sim.scene_setup)."""
+        t = gel_thickness_mm
+
+        def through(depth: float) -> str:
+            return f"{depth} mm reaches through the {t} mm gel (allowed: < {t})"
+
+        problems = [(f"indenters[{i}].trajectory[{k}].depth_mm", through(s.depth_mm))
+                    for i, ind in enumerate(self.indenters) for k, s in enumerate(ind.trajectory)
+                    if isinstance(s, Press) and s.depth_mm is not None and s.depth_mm >= t]
+        r = self.randomize
+        if r is not None and r.press_depth_mm is not None and r.press_depth_mm[1] >= t:
+            problems.append(("randomize.press_depth_mm", f"high {through(r.press_depth_mm[1])}"))
+        return problems

@@ -21,11 +21,13 @@ from __future__ import annotations
 
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
+
+from transtac_sim.config.fields import STRICT, Direction
 
 
 class _Segment(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT
     frames: int = Field(ge=1, le=10_000, description="quasi-static frames in this segment")
 
 
@@ -53,14 +55,8 @@ class Slide(_Segment):
 
 class Rotate(_Segment):
     kind: Literal["rotate"]
-    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    axis: Direction = (0.0, 0.0, 1.0)
     angle_deg: float = Field(ge=-360.0, le=360.0)
-
-    @model_validator(mode="after")
-    def _axis_nonzero(self) -> Rotate:
-        if sum(a * a for a in self.axis) < 1e-12:
-            raise ValueError("rotate.axis must be a non-zero vector")
-        return self
 
 
 class Roll(_Segment):

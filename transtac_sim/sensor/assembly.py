@@ -14,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from transtac_sim.camera.model import image_border, invertible_rays
 from transtac_sim.config import ConfigError, HardwareModel, load_hardware, load_material
 from transtac_sim.config.hardware import Camera, MarkerLayout
 from transtac_sim.config.materials import Dielectric, Diffuse, Elastomer, FluorescentPigment
+from transtac_sim.rendering.inputs import CameraSpec
 from transtac_sim.sensor.layouts import marker_centres
 
 
@@ -116,6 +118,11 @@ def build_sensor(hardware: str | Path = "transtac", marker_layout: MarkerLayout 
         "left": camera_calibration("left", rig.left, R, np.zeros(3)),
         "right": camera_calibration("right", rig.right, R, np.array([-rig.baseline_mm, 0.0, 0.0])),
     }
+    for name, cam in cameras.items():
+        try:
+            invertible_rays(CameraSpec(cam.K, cam.dist, cam.image_size, model=cam.model), image_border(cam.image_size))
+        except ValueError as e:
+            raise ConfigError(path, [(f"cameras.{name}.distortion", str(e))]) from None
     origin = np.array([rig.baseline_mm / 2, 0.0, rig.distance_to_backing_mm + hw.backing.thickness_mm])
     return Sensor(
         hardware=hw,
