@@ -1,11 +1,15 @@
 """`transtac-sim generate` end to end on a tiny sensor: the dataset validates, the same seed gives the
 same bytes in several runs, a killed run resumes to the same dataset, the Ray and worker layouts give the
-same bytes as an inline run, and the COCO files load in pycocotools with one annotation per visible marker."""
+same bytes as an inline run, and the COCO files load in pycocotools with one annotation per visible marker.
+What it refuses to write into (another scene's dataset, one whose files changed, a folder of other files, a file)
+is left as it was; damaged frames of a dataset are written again on resume."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -13,11 +17,15 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import REPO
 from mps_stand_in import stand_in
 from pycocotools.coco import COCO
+from typer.testing import CliRunner
 
+from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset import contract
 from transtac_sim.dataset.generate import _SequenceWorker, generate, ray_gpu_share
+from transtac_sim.dataset.inputs import input_files
 from transtac_sim.dataset.validate import validate_dataset
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -35,6 +43,11 @@ def _snapshot(root: Path) -> dict[str, bytes]:
                 data = json.dumps(contract.without_timings(json.loads(data)), sort_keys=True).encode()
             out[rel] = data
     return out
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    """Every file under ``root``, byte for byte (to check that a refused run changed nothing)."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +105,8 @@ def test_resume_after_kill_gives_the_same_dataset(reference: Path, tmp_path: Pat
     os.killpg(proc.pid, signal.SIGKILL)  # mid-run: some frames written, others not
     proc.wait()
     written = len(list(out.rglob("labels.json")))
-    assert 0 < written < 6 or (out / "manifest.json").exists()
-    assert not (out / "manifest.json").exists() or written == 6
+    samples = json.loads((out / "manifest.json").read_text())["samples"]  # written before the first frame
+    assert 0 < written < 6 and samples == [] or written == 6
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
     assert not list(out.rglob("*.tmp"))
@@ -131,12 +144,130 @@ def test_local_workers_equal_inline(reference: Path, tmp_path: Path):
 
 
 def test_refuses_to_mix_datasets(reference: Path):
-    from transtac_sim.config import ConfigError
-
     before = _snapshot(reference)
     with pytest.raises(ConfigError, match=r"another scene, seed or frame count \(seed: 3 -> 12345\)"):
         generate(SCENE, reference, frames=2, seed=12345)
     assert _snapshot(reference) == before
+
+
+class _Stop(Exception):
+    """Stands for a run interrupted between two sequences."""
+
+
+def _stop(done: int, total: int) -> None:
+    raise _Stop
+
+
+def test_an_interrupted_first_run_keeps_its_identity(tmp_path: Path):
+    """The manifest (the run's identity) is there before the first frame: a first run stopped after one sequence
+    is not resumed with another seed; frames with no manifest at all are refused. Nothing is changed by either."""
+    out = tmp_path / "ds"
+    out.mkdir()  # an existing empty folder is written into
+    with pytest.raises(_Stop):
+        generate(SCENE, out, frames=1, on_frames=_stop)
+    assert len(list(out.rglob("labels.json"))) == 1
+    assert json.loads((out / "manifest.json").read_text())["samples"] == []
+    before = _files(out)
+    with pytest.raises(ConfigError, match=r"another scene, seed or frame count \(seed: 3 -> 9\)"):
+        generate(SCENE, out, frames=1, seed=9)
+    assert _files(out) == before
+    (out / "manifest.json").unlink()
+    before = _files(out)
+    with pytest.raises(ConfigError, match=r"holds dataset frames \(sequences/\) but no manifest.json.*delete"):
+        generate(SCENE, out, frames=1, seed=9)
+    assert _files(out) == before
+
+
+def test_input_files_name_every_file_a_scene_uses():
+    """The hardware model, its materials and the indenter meshes, resolved as the scene's setup resolves them."""
+    path = FIXTURES / "tiny_press.toml"
+    files = input_files(load_scene(path), path)
+    assert set(files) == {"sensor.hardware", "gel.material", "backing.material", "housing.material",
+                          "markers.pigment", "indenters[0].mesh"}
+    assert files["sensor.hardware"] == FIXTURES / "tiny_sensor.toml" and files["gel.material"].name == "solaris.toml"
+    assert files["indenters[0].mesh"].resolve() == REPO / "scenes/indenters/sphere_r4.stl"
+    assert all(p.is_file() for p in files.values())
+
+
+def test_refuses_to_resume_after_a_used_file_changed(tmp_path: Path):
+    """An edit to a material or to the hardware model (not to the scene file) between two runs is refused, naming the
+    changed files, and nothing is written (calibration.json included)."""
+    scene, hw, gel = tmp_path / "tiny_rest.toml", tmp_path / "tiny_sensor.toml", tmp_path / "my_gel.toml"
+    shutil.copy(SCENE, scene)
+    shutil.copy(REPO / "materials" / "solaris.toml", gel)
+    hw.write_text((FIXTURES / "tiny_sensor.toml").read_text().replace('"solaris"', '"my_gel.toml"', 1))
+    out = tmp_path / "ds"
+    generate(scene, out, frames=1, sequences=1)
+    assert json.loads((out / "manifest.json").read_text())["inputs"]["gel.material"]["file"] == gel.name
+    before = _files(out)
+    gel.write_text(gel.read_text() + "\n# edited\n")
+    with pytest.raises(ConfigError, match=re.escape(f"have changed since: gel.material ({gel.name})")):
+        generate(scene, out, frames=1, sequences=1)
+    hw.write_text(hw.read_text().replace("radiant_power_mw = 60.0", "radiant_power_mw = 90.0"))
+    with pytest.raises(ConfigError, match=re.escape(f"sensor.hardware ({hw.name}); gel.material ({gel.name})")):
+        generate(scene, out, frames=1, sequences=1)
+    assert _files(out) == before
+
+
+def test_refuses_a_folder_of_other_files_or_a_file(tmp_path: Path):
+    """``--out`` naming a folder of the user's files, or a file, is refused with what and where; nothing changes."""
+    from transtac_sim.cli import app
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "calibration.json").write_text('{"mine": true}')
+    (mine / "notes.txt").write_text("keep")
+    before = _files(mine)
+    with pytest.raises(ConfigError, match=re.escape(f"{mine}: is not empty and holds no dataset")):
+        generate(SCENE, mine, frames=1)
+    assert _files(mine) == before
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("keep")
+    with pytest.raises(ConfigError, match="cannot create the dataset folder"):
+        generate(SCENE, a_file / "ds", frames=1)
+    r = CliRunner().invoke(app, ["generate", str(SCENE), "--out", str(a_file), "--frames", "1"])
+    assert r.exit_code == 2 and "exists and is not a folder" in r.output, r.output
+    assert a_file.read_text() == "keep"
+
+
+def test_resume_rewrites_damaged_frames(reference: Path, tmp_path: Path):
+    """A frame counts as done only when its labels.json parses and its images are whole: a deleted PNG, a labels.json
+    and a PNG cut short are written again (and reported), and the dataset is the uninterrupted run's again."""
+    out = tmp_path / "ds"
+    shutil.copytree(reference, out)
+    (contract.frame_dir(out, "seq_00000", 1) / "left_uv.png").unlink()
+    labels = contract.frame_dir(out, "seq_00001", 0) / "labels.json"
+    labels.write_text(labels.read_text()[:50])
+    png = contract.frame_dir(out, "seq_00002", 1) / "right_white.png"
+    png.write_bytes(png.read_bytes()[:-20])
+    report = generate(SCENE, out, frames=2)
+    assert report.frames_redone == ["seq_00000/000001: left_uv.png missing or damaged",
+                                    "seq_00001/000000: labels.json unreadable",
+                                    "seq_00002/000001: right_white.png missing or damaged"]
+    assert report.frames_skipped == 3 and report.frames_done == 6
+    assert _snapshot(out) == _snapshot(reference)
+    assert validate_dataset(out) == []
+
+
+def test_contact_sheet_marks_an_unreadable_image(reference: Path, tmp_path: Path):
+    """An image damaged after generate checked it gets a captioned empty tile, not a crash at the end of the run."""
+    from transtac_sim.dataset.sheet import dataset_contact_sheet
+
+    out = tmp_path / "ds"
+    shutil.copytree(reference, out)
+    (contract.frame_dir(out, "seq_00000", 0) / "left_uv.png").write_bytes(b"not a png")
+    assert dataset_contact_sheet(out, [("seq_00000", 0)], load_scene(SCENE).outputs, seed=0).is_file()
+
+
+def test_unreadable_manifest_is_a_clear_error(reference: Path, tmp_path: Path):
+    out = tmp_path / "ds"
+    shutil.copytree(reference, out)
+    manifest = out / "manifest.json"
+    manifest.write_text(manifest.read_text()[:100])
+    before = _files(out)
+    with pytest.raises(ConfigError, match=re.escape(f"{manifest}: unreadable (") + ".*restore the file, or choose another --out"):
+        generate(SCENE, out, frames=2)
+    assert _files(out) == before
 
 
 def test_scene_differences_name_the_keys_that_differ():

@@ -178,10 +178,13 @@ def generate(scene: Path = SceneArg,
             console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
             raise typer.Exit(2) from None
     tab = Table(title=f"dataset {report.root}", show_header=False)
-    tab.add_row("frames", f"{report.frames_done} done ({report.frames_skipped} already there), "
+    redone = f", {len(report.frames_redone)} damaged and written again" if report.frames_redone else ""
+    tab.add_row("frames", f"{report.frames_done} done ({report.frames_skipped} already there{redone}), "
                           f"{len(report.frames_failed)} failed")
     for f in report.frames_failed[:5]:
         tab.add_row("  failed", f"{f['sequence']}/{f['frame']:06d}: {f.get('reason', '')}")
+    for f in report.frames_redone[:5]:
+        tab.add_row("  written again", f)
     tab.add_row("stages", ", ".join(report.stages_run))
     tab.add_row("seconds per stage", ", ".join(f"{k} {v:.1f}" for k, v in report.timings.items()))
     tab.add_row("coco", ", ".join(f"{k}: {v} images" for k, v in report.coco_images.items()) or "(no UV labels asked)")

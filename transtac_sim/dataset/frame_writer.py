@@ -1,16 +1,21 @@
 """Writing one frame of the dataset: images (8-bit PNG), depth (float32 EXR, mm), then labels.json last.
 
-Every file is written atomically; ``labels.json`` going in last is what marks the frame complete.
+Every file is written atomically; ``labels.json`` going in last is what marks the frame complete, as long as it
+parses and every image the scene asks for is there, whole (a dataset damaged later, e.g. a file deleted or cut short
+by a copy, has its damaged frames written again on resume).
 """
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from transtac_sim.config.scene import Outputs
 from transtac_sim.dataset import contract
 from transtac_sim.writer.atomic import atomic_write, write_json
 
@@ -61,5 +66,38 @@ def write_frame_files(d: Path, out: FrameOutput) -> Path:
     return write_json(d / "labels.json", out.labels)
 
 
-def is_complete(root: Path, sequence: str, frame: int) -> bool:
-    return (contract.frame_dir(root, sequence, frame) / "labels.json").is_file()
+PNG_END = b"IEND\xaeB`\x82"  # the last chunk of every PNG: its type and CRC
+
+
+def frame_problems(root: Path, sequence: str, frame: int, outputs: Outputs | None = None) -> list[str]:
+    """Why one frame of the dataset at ``root`` is not complete; [] when it is. ``labels.json`` absent (the frame
+    was not finished) or unreadable; given the scene's ``outputs``, also each image and depth file it asks for that
+    is absent, empty or, for a PNG, cut short (not ending with its IEND chunk)."""
+    d = contract.frame_dir(root, sequence, frame)
+    try:
+        json.loads((d / "labels.json").read_text())
+        problems = []
+    except FileNotFoundError:
+        return ["labels.json missing"]
+    except (OSError, ValueError):  # ValueError: JSON cut short or not UTF-8
+        problems = ["labels.json unreadable"]
+    if outputs is not None:
+        names = [contract.image_name(c, i) for c in outputs.cameras for i in outputs.illuminations]
+        names += [contract.depth_name(c) for c in outputs.cameras if "depth" in outputs.aovs]
+        problems += [f"{name} missing or damaged" for name in names if not _whole(d / name)]
+    return problems
+
+
+def _whole(path: Path) -> bool:
+    """Whether ``path`` is a file of at least 8 bytes and, if a PNG, ends with ``PNG_END``."""
+    try:
+        with path.open("rb") as f:
+            f.seek(-len(PNG_END), os.SEEK_END)
+            return path.suffix != ".png" or f.read() == PNG_END
+    except OSError:  # absent, or shorter than 8 bytes (seeking before the start)
+        return False
+
+
+def is_complete(root: Path, sequence: str, frame: int, outputs: Outputs | None = None) -> bool:
+    """Whether the frame needs no writing again (``frame_problems``)."""
+    return not frame_problems(root, sequence, frame, outputs)

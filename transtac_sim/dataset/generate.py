@@ -2,10 +2,14 @@
 
 Sequences are the unit of work (frames within one warm-start from each other); they run inline, in local
 worker processes, or as Ray tasks, and each writes its frames itself, atomically, labels.json last. The
-main process only collects per-frame statuses and timings and writes manifest.json, the COCO files and a
-contact sheet at the end. Re-running the same command skips every complete frame (re-solving physics
-of an unfinished sequence from its start, so warm starts match) and gives the same bytes as an
-uninterrupted run, wall-clock fields aside.
+main process writes manifest.json before the first frame (the run's identity: the resolved scene and the content
+of every file it uses) and again at the end with every frame's status, then the COCO files and a contact sheet.
+Re-running the same command skips every complete frame (re-solving physics of an unfinished sequence from its
+start, so warm starts match; a frame damaged since it was written is written again) and gives the same bytes as
+an uninterrupted run, wall-clock fields aside.
+
+The output folder must be new, empty, or a dataset of this same scene, seed, frame count and input files
+(``check_out_folder``); anything else is refused before a file is written.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from pathlib import Path
 
 from transtac_sim.config import ConfigError, load_scene
 from transtac_sim.dataset.coco import write_coco
+from transtac_sim.dataset.inputs import changed_inputs, fingerprint
 from transtac_sim.dataset.manifest import build_manifest, read_manifest, write_manifest
 from transtac_sim.executors import (
     limit_threads,
@@ -52,6 +57,7 @@ class GenerateReport:
     coco_images: dict[str, int]
     contact_sheet: Path | None
     seconds: float = 0.0
+    frames_redone: list[str] = field(default_factory=list)  # "<sequence>/<frame>: why": damaged, written again
     gpus_used: list[str] = field(default_factory=list)  # Ray ids of the GPUs that solved sequences (Ray on GPUs)
 
 
@@ -126,6 +132,52 @@ def scene_differences(old, new, shown: int = 4) -> str:
     return "; ".join(listed) + (f"; and {len(keys) - shown} more" if len(keys) > shown else "")
 
 
+def check_out_folder(root: Path, resolved: dict, inputs: dict) -> dict | None:
+    """The manifest of the dataset at ``root`` where this run may resume it; None where ``root`` is new or empty.
+    Anything else raises a ConfigError (nothing is written): ``root`` is a file, holds files but no manifest (not a
+    dataset, or the frames of a run that recorded no identity), a dataset of another scene, seed or frame count
+    (``resolved``), or one made from files whose content has changed since (``inputs``)."""
+    if root.exists() and not root.is_dir():
+        raise ConfigError(root, [("", "exists and is not a folder; choose another --out (nothing was changed)")])
+    old = read_manifest(root)
+    if old is None:
+        if root.is_dir() and any(root.iterdir()):
+            raise ConfigError(root, [("", _not_a_dataset(root))])
+        return None
+    if old.get("scene") != resolved:
+        raise ConfigError(root / "manifest.json", [("scene", "this folder holds a dataset of another scene, seed or "
+                                                    f"frame count ({scene_differences(old.get('scene'), resolved)}); "
+                                                    "choose another --out (nothing was changed)")])
+    if not isinstance(old.get("inputs"), dict):
+        raise ConfigError(root / "manifest.json", [("inputs", "missing (made by an earlier version of transtac_sim): "
+                                                    "whether its hardware model, materials and meshes are unchanged "
+                                                    "cannot be checked; choose another --out (nothing was changed)")])
+    if changed := changed_inputs(old["inputs"], inputs):
+        why = (f"files this dataset was made from have changed since: {'; '.join(changed)} (paths from the scene "
+               "file's folder); resuming would mix frames made from the old and the new files: choose another --out, "
+               "or restore them (nothing was changed)")
+        raise ConfigError(root / "manifest.json", [("inputs", why)])
+    return old
+
+
+def _not_a_dataset(root: Path) -> str:
+    """Why a non-empty ``root`` without manifest.json is refused, and what to do."""
+    if (root / "sequences").exists():
+        return ("holds dataset frames (sequences/) but no manifest.json: which scene, seed and files they were made "
+                "from cannot be checked (a run interrupted before it wrote one, or files copied in); choose a new "
+                f"--out, or delete {root} to start over (nothing was changed)")
+    return "is not empty and holds no dataset (no manifest.json); choose a new or empty --out (nothing was changed)"
+
+
+def _make_folder(root: Path) -> None:
+    """Create ``root`` (and its parents); a path that cannot be a folder is a ConfigError naming it."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        why = f"cannot create the dataset folder ({e.strerror}); choose another --out"
+        raise ConfigError(root, [("", why)]) from None
+
+
 def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = None, seed: int | None = None,
              sequences: int | None = None, workers: int = 1, executor: str = "local", address: str | None = None,
              on_frames: Callable[[int, int], None] | None = None, retry_failed: bool = False,
@@ -151,17 +203,16 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
     root = Path(out)
     resolved = json.loads(scene.model_dump_json())
     resolved["frames_per_sequence"] = limit
-    old = read_manifest(root)
-    if old is not None and old.get("scene") != resolved:
-        raise ConfigError(root / "manifest.json", [("scene", "this folder holds a dataset of another scene, seed or "
-                                                    f"frame count ({scene_differences(old.get('scene'), resolved)}); "
-                                                    "choose another --out (nothing was changed)")])
+    from transtac_sim.scene_setup import build_setup
+
+    base = build_setup(scene, scene_path)  # every referenced file is checked before anything is written
+    inputs = fingerprint(scene, scene_path)
+    old = check_out_folder(root, resolved, inputs)
     # MPS is started before anything is written: where it cannot be, the folder is left as it was
     with mps_server() if mps else nullcontext():
-        root.mkdir(parents=True, exist_ok=True)
-        from transtac_sim.scene_setup import build_setup
-
-        base = build_setup(scene, scene_path)
+        _make_folder(root)
+        if old is None:
+            write_manifest(root, build_manifest(resolved, str(scene_path), scene.seed, [], [], {}, inputs))
         write_json(root / "calibration.json", base.sensor.calibration_json())
         tasks = [SequenceTask(str(scene_path), json.dumps(resolved), i, str(root), retry_failed)
                  for i in range(scene.sequences)]
@@ -180,7 +231,7 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
             timings[k] = timings.get(k, 0.0) + v
         stages |= set(r.pop("stages", []))
     samples = [{k: r[k] for k in ("sequence", "frame", "status", "reason") if k in r} for r in results]
-    manifest = build_manifest(resolved, str(scene_path), scene.seed, samples, sorted(stages), timings)
+    manifest = build_manifest(resolved, str(scene_path), scene.seed, samples, sorted(stages), timings, inputs)
     done = [(s["sequence"], s["frame"]) for s in manifest["samples"] if s["status"] == "done"]
     coco = {}
     if "uv" in scene.outputs.illuminations and scene.outputs.labels:
@@ -190,5 +241,6 @@ def generate(scene_path: str | Path, out: str | Path, *, frames: int | None = No
 
     sheet = dataset_contact_sheet(root, done, scene.outputs, seed=scene.seed)
     failed = [s for s in manifest["samples"] if s["status"] == "failed"]
+    redone = [f"{r['sequence']}/{r['frame']:06d}: {r['redone']}" for r in results if "redone" in r]
     return GenerateReport(root, len(done), failed, sum(r.get("skipped", False) for r in results), timings,
-                          sorted(stages), coco, sheet, time.perf_counter() - t0, sorted(gpus_used))
+                          sorted(stages), coco, sheet, time.perf_counter() - t0, redone, sorted(gpus_used))

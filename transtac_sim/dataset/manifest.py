@@ -1,8 +1,12 @@
 """``manifest.json``: what a dataset is and how it was made.
 
 Keys: ``format_version``, ``generator`` (package and version), ``scene`` (the resolved scene config),
-``scene_file``, ``seed``, ``samples`` (one per frame: sequence, frame, status ``done`` | ``failed``,
-reason), ``stages_run``, ``timings`` (seconds per stage, summed), ``software`` (versions), ``machine``.
+``inputs`` (the files the scene uses: key -> file and sha256, ``dataset/inputs.py``), ``scene_file``, ``seed``,
+``samples`` (one per frame: sequence, frame, status ``done`` | ``failed``, reason), ``stages_run``, ``timings``
+(seconds per stage, summed), ``software`` (versions), ``machine``.
+
+``generate`` writes it before the first frame, with no samples (the run's identity: ``scene`` and ``inputs``, what
+a resumed run is checked against), and again, complete, at the end.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from transtac_sim import __version__
+from transtac_sim.config import ConfigError
 from transtac_sim.dataset import contract
 from transtac_sim.writer.atomic import write_json
 
@@ -36,13 +41,14 @@ def machine() -> dict:
 
 
 def build_manifest(scene: dict, scene_file: str, seed: int, samples: list[dict], stages_run: list[str],
-                   timings: dict[str, float]) -> dict:
+                   timings: dict[str, float], inputs: dict | None = None) -> dict:
     return {
         "format_version": contract.FORMAT_VERSION,
         "generator": {"name": "transtac_sim", "version": __version__},
         "scene_file": scene_file,
         "seed": seed,
         "scene": scene,
+        "inputs": inputs or {},
         "samples": sorted(samples, key=lambda s: (s["sequence"], s["frame"])),
         "stages_run": sorted(stages_run),
         "timings": {k: round(v, 4) for k, v in sorted(timings.items())},
@@ -52,8 +58,21 @@ def build_manifest(scene: dict, scene_file: str, seed: int, samples: list[dict],
 
 
 def read_manifest(root: Path) -> dict | None:
+    """The manifest of the dataset at ``root``, None where there is none; one that cannot be read (cut short,
+    not JSON, not an object) is a ConfigError naming it and what to do."""
     p = Path(root) / "manifest.json"
-    return json.loads(p.read_text()) if p.is_file() else None
+    if not p.is_file():
+        return None
+    try:
+        manifest = json.loads(p.read_text())
+        why = "" if isinstance(manifest, dict) else "not a JSON object"
+    except (OSError, ValueError) as e:  # ValueError: JSON cut short or not UTF-8
+        why = str(e)
+    if not why:
+        return manifest
+    raise ConfigError(p, [("", f"unreadable ({why}); it records which scene and files this dataset was made from, so "
+                               f"it cannot be resumed: restore the file, or choose another --out, or delete {root} "
+                               "to start over (nothing was changed)")])
 
 
 def write_manifest(root: Path, manifest: dict) -> Path:

@@ -2,6 +2,9 @@
 render, camera model, labels, write. Runs in a worker process or a Ray task; returns one status record
 per frame with its per-stage seconds.
 
+A frame counts as done when it is complete (``frame_writer.frame_problems``); one whose files were damaged after
+an earlier run wrote it is solved and written again, its record saying why (``redone``).
+
 A frame whose physics fails stops its sequence; the failure is kept in ``<dataset>/.resume/<sequence>.json``
 (resume state, not part of the dataset contract), so that a resumed run does not solve the same sequence up
 to the same failure again (minutes for a sharp slide that exhausts the sub-stepping); ``retry_failed`` (the
@@ -23,7 +26,7 @@ import numpy as np
 
 from transtac_sim.config.scene import Scene
 from transtac_sim.dataset import contract
-from transtac_sim.dataset.frame_writer import FrameOutput, is_complete, write_frame
+from transtac_sim.dataset.frame_writer import FrameOutput, frame_problems, is_complete, write_frame
 from transtac_sim.dataset.randomize import sequence_variant
 from transtac_sim.writer.atomic import write_json
 
@@ -51,7 +54,8 @@ def run_sequence(task) -> list[dict]:
     scene = Scene.model_validate(resolved)
     root = Path(task.root)
     seq = contract.sequence_name(task.index)
-    todo = [f for f in range(limit) if not is_complete(root, seq, f)]
+    damaged = damaged_frames(root, seq, limit, scene.outputs)
+    todo = [f for f in range(limit) if not is_complete(root, seq, f, scene.outputs)]
     if not todo:
         return [{"sequence": seq, "frame": f, "status": "done", "skipped": True} for f in range(limit)]
     failure = failure_record(root, seq)
@@ -84,7 +88,8 @@ def run_sequence(task) -> list[dict]:
             labels = frame_labels(seq, f, f / out.frame_rate_hz, setup, phys, views)
             with clock("write"):
                 write_frame(root, FrameOutput(seq, f, labels, images, depth))
-            records.append({"sequence": seq, "frame": f, "status": "done"})
+            redone = {"redone": damaged[f]} if f in damaged else {}
+            records.append({"sequence": seq, "frame": f, "status": "done"} | redone)
     except simulation.SimulationFailed as e:
         done = {r["frame"] for r in records}
         failed = [{"sequence": seq, "frame": f, "status": "failed", "reason": str(e) if f == e.frame else
@@ -111,6 +116,17 @@ def sequence_setup(scene: Scene, scene_path: Path, index: int):
         gel = setup.sensor.gel.model_copy(update={"youngs_modulus_mpa": variant.youngs_modulus_mpa})
         setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, gel=gel))
     return setup, variant
+
+
+def damaged_frames(root: Path, sequence: str, limit: int, outputs) -> dict[int, str]:
+    """The frames of ``sequence`` whose labels.json is there (so an earlier run finished them) but that are not
+    complete: a file damaged since (``frame_problems``), each with what is wrong; they are written again."""
+    out = {}
+    for f in range(limit):
+        if (contract.frame_dir(root, sequence, f) / "labels.json").is_file():
+            if problems := frame_problems(root, sequence, f, outputs):
+                out[f] = ", ".join(problems)
+    return out
 
 
 def failure_record(root: Path, sequence: str) -> Path:

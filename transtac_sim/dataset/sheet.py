@@ -28,6 +28,9 @@ def dataset_contact_sheet(root: Path, done: list[tuple[str, int]], outputs: Outp
         for cam in outputs.cameras:
             for ill in outputs.illuminations:
                 bgr = cv2.imread(str(d / contract.image_name(cam, ill)), cv2.IMREAD_COLOR)
+                if bgr is None:  # damaged after generate checked it: said in the caption, not a crash at the end
+                    tiles.append((f"{seq}/{frame:06d} {cam} {ill} unreadable", np.zeros((1, 1, 3), np.uint8)))
+                    continue
                 tile = annotate(bgr[..., ::-1], labels, cam, scale=1) if outputs.labels else bgr[..., ::-1]
                 tiles.append((f"{seq}/{frame:06d} {cam} {ill}", tile))
     return save_contact_sheet(tiles, Path(root) / "contact_sheet.png",
