@@ -129,3 +129,10 @@ def test_lens_distortion_that_folds_over(repo_copy: Path):
     hw = edit(repo_copy / "hardware_models/transtac.toml", "distortion = [-0.12, 0.02,", "distortion = [-0.9, 0.0,")
     msg = _error(build_sensor, hw)
     assert str(hw) in msg and "cameras.left.distortion: the lens distortion is not invertible over the image" in msg
+
+
+@pytest.mark.parametrize("name", ["/tmp/elsewhere", "../../x", ".hidden", "two words"])
+def test_scene_name_that_is_not_a_folder_name(repo_copy: Path, name: str):
+    """A scene's name names its default output folders (out/<name>/...): a path or an odd name is refused."""
+    p = edit(repo_copy / "scenes/quickstart.toml", 'name = "quickstart"', f'name = "{name}"')
+    assert "name: the scene's name names its default output folders" in _error(load_scene, p)

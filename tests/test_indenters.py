@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 from math import pi
 from pathlib import Path
 
@@ -61,6 +62,17 @@ def test_empty_file(tmp_path: Path):
     p.write_bytes(b"")
     with pytest.raises(IndenterMeshError, match=str(p)):
         load_indenter_mesh(p, "mm")
+
+
+def test_cut_short_or_text_file_says_so(tmp_path: Path):
+    """A binary STL cut short (a failed copy) or a text file named .stl: no faces read, and the message says why."""
+    whole = (REPO / "scenes/indenters/sphere_r4.stl").read_bytes()
+    for name, data in (("cut.stl", whole[:300]), ("notes.stl", b"these are my notes, not a mesh\n")):
+        p = tmp_path / name
+        p.write_bytes(data)
+        with pytest.raises(IndenterMeshError, match=re.escape(f"{p}: no faces could be read: the file is empty, cut "
+                                                              "short, or not a mesh file")):
+            load_indenter_mesh(p, "mm")
 
 
 def test_open_mesh_is_refused(tmp_path: Path):

@@ -4,9 +4,10 @@ the meshing resolution, and the outputs asked for. Units: mm, degrees in files; 
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from transtac_sim.config.fields import STRICT
 from transtac_sim.config.hardware import MarkerLayout
@@ -126,7 +127,7 @@ class Render(_Strict):
 
 
 class Scene(_Strict):
-    name: str = Field(min_length=1)
+    name: str = Field(min_length=1, description="also the default output folder's name (out/<name>/...)")
     seed: int = Field(default=0, ge=0)
     sequences: int = Field(default=1, ge=1, le=1_000_000, description="sequences in a generated dataset")
     sensor: SensorRef = SensorRef()
@@ -136,6 +137,14 @@ class Scene(_Strict):
     physics: Physics = Physics()
     render: Render = Render()
     randomize: Randomize | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder_name(cls, name: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
+            raise ValueError("the scene's name names its default output folders: letters, digits, '.', '_' and '-', "
+                             "starting with a letter or digit")
+        return name
 
     @model_validator(mode="after")
     def _unique_names(self) -> Scene:

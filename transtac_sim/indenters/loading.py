@@ -41,7 +41,7 @@ def check_and_repair(mesh: trimesh.Trimesh, source: str | Path, units: str = "mm
     if units not in MM_PER_UNIT:
         raise _fail(source, f"unknown unit {units!r} (allowed: {', '.join(MM_PER_UNIT)})")
     if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
-        raise _fail(source, "the mesh is empty (no faces)")
+        raise _fail(source, "no faces could be read: the file is empty, cut short, or not a mesh file")
     if not np.isfinite(mesh.vertices).all():
         raise _fail(source, "the mesh has NaN or infinite vertex coordinates")
     mesh = mesh.copy()
