@@ -41,7 +41,7 @@ def _dataset(root: Path, sequences: int = 6, frames: int = 2) -> list[tuple[str,
             samples.append({"sequence": seq, "frame": f, "status": "done"})
             done.append((seq, f))
     scene = {"outputs": {"cameras": ["left", "right"], "illuminations": ["uv", "white"], "aovs": []}}
-    write_manifest(root, build_manifest(scene, "x.toml", 0, samples, ["render"], {"render": 1.0}))
+    write_manifest(root, build_manifest(scene, "x.toml", 0, samples, ["render"], {"render": 1.0}, {}))
     write_json(root / "calibration.json", {"image_size": [W, H], "model": "pinhole", "K_left": [], "dist_left": [],
                                            "K_right": [], "dist_right": [], "R": [], "T": []})
     write_coco(root, done, ["left", "right"], (W, H), seed=0)

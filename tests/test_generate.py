@@ -249,14 +249,19 @@ def test_resume_rewrites_damaged_frames(reference: Path, tmp_path: Path):
     assert validate_dataset(out) == []
 
 
-def test_contact_sheet_marks_an_unreadable_image(reference: Path, tmp_path: Path):
+def test_contact_sheet_marks_an_unreadable_image(reference: Path, tmp_path: Path, monkeypatch):
     """An image damaged after generate checked it gets a captioned empty tile, not a crash at the end of the run."""
-    from transtac_sim.dataset.sheet import dataset_contact_sheet
+    from transtac_sim.dataset import sheet
 
     out = tmp_path / "ds"
     shutil.copytree(reference, out)
     (contract.frame_dir(out, "seq_00000", 0) / "left_uv.png").write_bytes(b"not a png")
-    assert dataset_contact_sheet(out, [("seq_00000", 0)], load_scene(SCENE).outputs, seed=0).is_file()
+    tiles = []
+    real = sheet.save_contact_sheet
+    monkeypatch.setattr(sheet, "save_contact_sheet", lambda t, *a, **k: tiles.extend(t) or real(t, *a, **k))
+    assert sheet.dataset_contact_sheet(out, [("seq_00000", 0)], load_scene(SCENE).outputs, seed=0).is_file()
+    unreadable = [(c, t.shape) for c, t in tiles if c.endswith("unreadable")]
+    assert unreadable == [("seq_00000/000000 left uv unreadable", (1, 1, 3))] and len(tiles) > 1
 
 
 def test_unreadable_manifest_is_a_clear_error(reference: Path, tmp_path: Path):
@@ -265,7 +270,8 @@ def test_unreadable_manifest_is_a_clear_error(reference: Path, tmp_path: Path):
     manifest = out / "manifest.json"
     manifest.write_text(manifest.read_text()[:100])
     before = _files(out)
-    with pytest.raises(ConfigError, match=re.escape(f"{manifest}: unreadable (") + ".*restore the file, or choose another --out"):
+    with pytest.raises(ConfigError,
+                       match=re.escape(f"{manifest}: unreadable (") + ".*restore the file, or choose another --out"):
         generate(SCENE, out, frames=2)
     assert _files(out) == before
 

@@ -156,6 +156,8 @@ def test_device_camera_and_output_mistakes_are_named(images: Path, tmp_path: Pat
         res, text = _detect([str(images), "--device", "cuda"], tmp_path / "d.json")
         assert res.exit_code == 2 and "no CUDA GPU" in text and not (tmp_path / "d.json").exists()
     res, text = _detect([str(images), "--method", "blob"], images)
-    assert res.exit_code == 2 and "is a folder" in text and sorted(p.name for p in images.iterdir()) == ["000.png", "001.png"]
-    res = runner.invoke(app, ["track", str(images), "--camera", "middle", "--detector", "blob", "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "is a folder" in text
+    assert sorted(p.name for p in images.iterdir()) == ["000.png", "001.png"]
+    res = runner.invoke(app, ["track", str(images), "--camera", "middle", "--detector", "blob",
+                              "--out", str(tmp_path / "t.json")])
     assert res.exit_code == 2 and "unknown camera 'middle'" in " ".join(res.output.split())

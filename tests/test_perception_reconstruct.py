@@ -135,16 +135,21 @@ def test_preview_video_has_a_frame_per_stereo_frame(tmp_path: Path):
 
 
 def test_output_folder_of_something_else_is_refused_and_a_rerun_replaces_its_own_files(tmp_path: Path):
-    """--out must be new, empty or an earlier reconstruct output: a folder of other files is refused with nothing
-    changed; a re-run with fewer frames replaces the earlier run's files, none of them left stale."""
+    """--out must be new, empty or an earlier reconstruct output (an interrupted one too): a folder of other files
+    is refused with nothing changed; a re-run with fewer frames replaces the earlier run's files, none of them left
+    stale, and leaves no staging folder."""
     root, _ = _scene(tmp_path, frames=2)
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "summary.json").write_text('{"kind": "transtac-sim simulate"}')
-    res, text = _run(root, other)
-    assert res.exit_code == 2 and "holds no reconstruct output" in text
-    assert [p.name for p in other.iterdir()] == ["summary.json"]
+    for name, text in (("summary.json", '{"kind": "transtac-sim simulate"}'), ("notes.txt", "mine")):
+        other = tmp_path / "other" / name
+        other.parent.mkdir(exist_ok=True)
+        other.write_text(text)
+        res, message = _run(root, other.parent)
+        assert res.exit_code == 2 and "not an earlier reconstruct output" in message
+        assert other.read_text() == text
+        other.unlink()
     out = tmp_path / "out"
+    (out / "frames").mkdir(parents=True)
+    (out / "frames" / "000007.json").write_text("{}")  # a first run interrupted: no summary yet
     assert _run(root, out)[0].exit_code == 0
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["000000.json", "000001.json"]
     for cam in ("left", "right"):
@@ -154,3 +159,4 @@ def test_output_folder_of_something_else_is_refused_and_a_rerun_replaces_its_own
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["000000.json"]
     assert json.loads((out / "summary.json").read_text())["frames"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json", "left", "other", "out", "right"]
+    assert sorted(p.name for p in out.iterdir()) == ["frames", "preview.png", "summary.json"]

@@ -62,7 +62,7 @@ def test_the_context_level_needs_sizes_in_multiples_of_16(tmp_path: Path):
     ds = write_tiny_dataset(tmp_path / "ds", sequences=2, frames=1, shape_hw=(88, 128))
     res = CliRunner().invoke(app, ["train-detector", str(ds), "--out", str(tmp_path / "m.pt"), "--crop", "72",
                                    "--context"])
-    assert res.exit_code == 2 and "multiple of 16 with --context" in " ".join(res.output.split())
+    assert res.exit_code == 2 and "multiple of 16 with the context level (--context)" in " ".join(res.output.split())
     with pytest.raises(ValueError, match="crop 72 px: must be a multiple of 16"):
         train_detector([ds], tmp_path / "m.pt", TrainConfig(steps=1, crop_px=72, context=True, device="cpu"))
     with pytest.raises(PerceptionInputError, match="images of 128x88 px"):

@@ -175,9 +175,9 @@ def test_summed_hessian_equals_the_sum_of_its_parts():
 def test_device_last_resort_solves_the_shifted_system():
     """Newton's last Hessian (Gauss-Newton, ``definite=False``) that the device CG does not solve (here: 8 iterations
     allowed, to a relative residual of 1e-10) is solved with a Levenberg-Marquardt shift, H + lambda |diag H|
-    (device_linear.py ``SHIFTS``): the step equals scipy's solution of that shifted system on the free dofs and is a descent
-    direction. A Hessian that must be positive definite returns None instead, and so does the last one where no
-    shift converges (1 iteration allowed); nothing is handed to the host."""
+    (device_linear.py ``SHIFTS``): the step equals scipy's solution of that shifted system on the free dofs and is a
+    descent direction. A Hessian that must be positive definite returns None instead, and so does the last one where
+    no shift converges (1 iteration allowed); nothing is handed to the host."""
     solver, ind = _pressed_solver()
     linear = LinearSolver("cg", solver._fixed_nodes, solver.device)
     linear.cg_maxiter = 8

@@ -61,9 +61,6 @@ def register(app: typer.Typer) -> None:
         from transtac_sim.perception.errors import PerceptionInputError
         from transtac_sim.perception.training.train import TrainConfig, train_detector
 
-        multiple = 16 if context else 8  # MarkerNet's coarsest stride
-        if crop % multiple:
-            _fail(ValueError(f"--crop {crop}: must be a multiple of {multiple}" + (" with --context" if context else "")))
         cfg = TrainConfig(steps=steps, batch=batch, crop_px=crop, width=width, context=context,
                           correlation_weight=correlation_weight,
                           learning_rate=learning_rate, device=device, eval_every=eval_every, seed=seed)
@@ -81,7 +78,7 @@ def register(app: typer.Typer) -> None:
                     bar.update(task, completed=step, loss=loss, recall=recall[0])
 
                 rep = train_detector(datasets, out, cfg, progress, command)
-        except PerceptionInputError as e:
+        except (PerceptionInputError, ValueError) as e:
             _fail(e)
         console.print(f"trained on {rep.train_images} images ({rep.val_images} validation) in {rep.seconds:.0f} s on {rep.device}")
         if rep.val:
@@ -174,7 +171,7 @@ def register(app: typer.Typer) -> None:
             _fail(ValueError(f"--board {board!r}: give inner corners as COLUMNSxROWS, e.g. 9x6"))
         if cols < 2 or rows < 2:
             _fail(ValueError(f"--board {board!r}: at least 2x2 inner corners"))
-        if square_mm <= 0.0:
+        if not square_mm > 0.0:  # NaN too
             _fail(ValueError(f"--square-mm {square_mm}: the squares' size, > 0 mm"))
         try:
             with console.status("finding the board and calibrating..."):

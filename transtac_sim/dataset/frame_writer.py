@@ -67,6 +67,7 @@ def write_frame_files(d: Path, out: FrameOutput) -> Path:
 
 
 PNG_END = b"IEND\xaeB`\x82"  # the last chunk of every PNG: its type and CRC
+LABELS_MISSING = "labels.json missing"  # the frame was not finished (``frame_problems``)
 
 
 def frame_problems(root: Path, sequence: str, frame: int, outputs: Outputs | None = None) -> list[str]:
@@ -78,7 +79,7 @@ def frame_problems(root: Path, sequence: str, frame: int, outputs: Outputs | Non
         json.loads((d / "labels.json").read_text())
         problems = []
     except FileNotFoundError:
-        return ["labels.json missing"]
+        return [LABELS_MISSING]
     except (OSError, ValueError):  # ValueError: JSON cut short or not UTF-8
         problems = ["labels.json unreadable"]
     if outputs is not None:

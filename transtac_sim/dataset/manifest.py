@@ -41,14 +41,14 @@ def machine() -> dict:
 
 
 def build_manifest(scene: dict, scene_file: str, seed: int, samples: list[dict], stages_run: list[str],
-                   timings: dict[str, float], inputs: dict | None = None) -> dict:
+                   timings: dict[str, float], inputs: dict) -> dict:
     return {
         "format_version": contract.FORMAT_VERSION,
         "generator": {"name": "transtac_sim", "version": __version__},
         "scene_file": scene_file,
         "seed": seed,
         "scene": scene,
-        "inputs": inputs or {},
+        "inputs": inputs,
         "samples": sorted(samples, key=lambda s: (s["sequence"], s["frame"])),
         "stages_run": sorted(stages_run),
         "timings": {k: round(v, 4) for k, v in sorted(timings.items())},

@@ -26,7 +26,7 @@ import numpy as np
 
 from transtac_sim.config.scene import Scene
 from transtac_sim.dataset import contract
-from transtac_sim.dataset.frame_writer import FrameOutput, frame_problems, is_complete, write_frame
+from transtac_sim.dataset.frame_writer import LABELS_MISSING, FrameOutput, frame_problems, write_frame
 from transtac_sim.dataset.randomize import sequence_variant
 from transtac_sim.writer.atomic import write_json
 
@@ -54,8 +54,9 @@ def run_sequence(task) -> list[dict]:
     scene = Scene.model_validate(resolved)
     root = Path(task.root)
     seq = contract.sequence_name(task.index)
-    damaged = damaged_frames(root, seq, limit, scene.outputs)
-    todo = [f for f in range(limit) if not is_complete(root, seq, f, scene.outputs)]
+    problems = {f: frame_problems(root, seq, f, scene.outputs) for f in range(limit)}
+    todo = [f for f in range(limit) if problems[f]]
+    damaged = {f: ", ".join(p) for f, p in problems.items() if p and p != [LABELS_MISSING]}  # finished, since damaged
     if not todo:
         return [{"sequence": seq, "frame": f, "status": "done", "skipped": True} for f in range(limit)]
     failure = failure_record(root, seq)
@@ -116,17 +117,6 @@ def sequence_setup(scene: Scene, scene_path: Path, index: int):
         gel = setup.sensor.gel.model_copy(update={"youngs_modulus_mpa": variant.youngs_modulus_mpa})
         setup = dataclasses.replace(setup, sensor=dataclasses.replace(setup.sensor, gel=gel))
     return setup, variant
-
-
-def damaged_frames(root: Path, sequence: str, limit: int, outputs) -> dict[int, str]:
-    """The frames of ``sequence`` whose labels.json is there (so an earlier run finished them) but that are not
-    complete: a file damaged since (``frame_problems``), each with what is wrong; they are written again."""
-    out = {}
-    for f in range(limit):
-        if (contract.frame_dir(root, sequence, f) / "labels.json").is_file():
-            if problems := frame_problems(root, sequence, f, outputs):
-                out[f] = ", ".join(problems)
-    return out
 
 
 def failure_record(root: Path, sequence: str) -> Path:

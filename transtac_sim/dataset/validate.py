@@ -38,7 +38,7 @@ class ResolvedScene(_Json):
 
 
 class Sample(_Json):
-    sequence: str = Field(min_length=1)
+    sequence: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$", description="a folder name under sequences/")
     frame: int = Field(ge=0)
     status: Literal["done", "failed"]
 

@@ -69,7 +69,9 @@ def pick_sequence(dataset: Path, sequence: str | None) -> str:
 
 
 def complete_frames(dataset: Path, sequence: str) -> list[Path]:
-    """A sequence's complete frame folders (those with ``labels.json``, written last), in frame order."""
+    """A sequence's finished frame folders (those with ``labels.json``, which the generator writes last), in frame
+    order. (The generator's own resume test, ``dataset/frame_writer.py``, also checks the images are whole; readers
+    here name a missing or unreadable image when they open it.)"""
     root = Path(dataset) / "sequences" / sequence
     return [f for f in sorted(root.iterdir()) if f.is_dir() and (f / "labels.json").is_file()]
 
@@ -80,11 +82,8 @@ def labelled_images(dataset: Path, only: set[str] | None = None, cameras=CAMERAS
     for seq in sequences(dataset):
         if only is not None and seq not in only:
             continue
-        for fdir in sorted((dataset / "sequences" / seq).iterdir()):
-            lab = fdir / "labels.json"
-            if not lab.is_file():
-                continue  # an unfinished frame: labels.json is written last
-            labels = json.loads(lab.read_text())
+        for fdir in complete_frames(dataset, seq):
+            labels = json.loads((fdir / "labels.json").read_text())
             for cam in cameras:
                 uv_path = fdir / f"{cam}_uv.png"
                 if not uv_path.is_file():

@@ -1,5 +1,6 @@
 """Reading camera images and finding them on disk: a single image, a folder of images, or a dataset folder
-(every ``*_uv.png`` under its ``sequences/``). Images are 8-bit, BGR (OpenCV's order), H x W x 3."""
+(every ``*_uv.png`` under its ``sequences/``). Images are 8-bit, BGR (OpenCV's order), H x W x 3 (``read_image``
+also returns grey H x W images, for calibration boards)."""
 
 from __future__ import annotations
 

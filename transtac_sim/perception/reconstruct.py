@@ -14,9 +14,9 @@ triangulated markers, or ``"distance-aware"``: markers plus object features, whi
 Output (DESIGN.md section 6; ``docs/formats.md``): ``OUT/frames/<frame:06d>.json`` per frame,
 ``OUT/summary.json`` and ``OUT/preview.png`` (the last frame's matches drawn on both views beside its
 surface coloured by depth) or, with ``preview="video"``, ``OUT/preview.mp4`` of every frame. Every input
-is read and checked before anything is written; each file is written atomically. ``OUT`` is new, empty or an
-earlier reconstruct output, whose files are replaced when this run ends (an interrupted run leaves them as they
-were). A frame with fewer than three markers in a view is written with zero matches and its reason.
+is read and checked before anything is written; each file is written atomically. ``OUT`` is new, empty or holds
+only what reconstruct writes (an earlier run), whose files are replaced when this run ends (an interrupted run
+leaves them as they were). A frame with fewer than three markers in a view is written with zero matches and its reason.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 from transtac_sim.perception.detect import make_detector
 from transtac_sim.perception.errors import PerceptionInputError
 from transtac_sim.perception.fuse import ANCHOR_MODES, fuse_frame
-from transtac_sim.perception.images import ImageRef, find_images, is_dataset, read_color_image, sequence_files
+from transtac_sim.perception.images import ImageRef, find_images, read_color_image, sequence_files
 from transtac_sim.perception.preview import reconstruction_panel, write_png, write_video
 from transtac_sim.perception.stereo import (
     MATCHERS,
@@ -47,7 +47,7 @@ from transtac_sim.perception.stereo.dense import OnnxStereo
 from transtac_sim.perception.stereo.triangulation import triangulate_linear, triangulate_refracted
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
 from transtac_sim.writer.atomic import write_json
-from transtac_sim.writer.staging import staged_output
+from transtac_sim.writer.staging import own_entries, staged_output
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 MIN_MARKERS = 3
@@ -62,31 +62,36 @@ class ReconstructReport:
     seconds: dict[str, float]
 
 
+#: what reconstruct writes into its --out folder (module docstring)
+OWN_ENTRIES = ("frames", "dense", "preview.png", "preview.mp4", "summary.json")
+
+
 def check_output_folder(out: Path) -> None:
-    """Raise PerceptionInputError unless ``out`` is new, empty or an earlier reconstruct output (its summary.json
-    has ``matcher`` and ``mean_matches``), whose files this run replaces when it ends (writer/staging.py)."""
+    """Raise PerceptionInputError unless ``out`` is new, empty or holds only what reconstruct writes (an earlier
+    run, finished or not: a summary.json there is reconstruct's), whose files this run replaces when it ends
+    (writer/staging.py)."""
     out = Path(out)
-    if not out.exists():
-        return
-    if not out.is_dir():
+    if out.exists() and not out.is_dir():
         raise PerceptionInputError(out, "exists and is not a folder", "choose another --out")
-    if not any(out.iterdir()):
+    if not out.is_dir():
         return
-    try:
-        old = json.loads((out / "summary.json").read_text())
-    except (OSError, ValueError):
-        old = None
-    if not (isinstance(old, dict) and {"matcher", "mean_matches"} <= old.keys()):
-        raise PerceptionInputError(out, "is not empty and holds no reconstruct output",
+    ours = all(p.name in OWN_ENTRIES for p in own_entries(out))
+    if ours and (out / "summary.json").exists():
+        try:
+            summary = json.loads((out / "summary.json").read_text())
+        except (OSError, ValueError):
+            summary = None
+        ours = isinstance(summary, dict) and {"matcher", "mean_matches"} <= summary.keys()
+    if not ours:
+        raise PerceptionInputError(out, "holds files that are not an earlier reconstruct output",
                                    "choose a new or empty --out (nothing was changed)")
 
 
-def _clear_previous(out: Path) -> None:
-    """Remove an earlier reconstruct run's files from ``out`` (only those this command writes)."""
-    for pattern in ("frames/[0-9]*.json", "dense/[0-9]*.exr", "dense/[0-9]*.ply", "preview.png", "preview.mp4",
-                    "summary.json"):
-        for p in out.glob(pattern):
-            p.unlink()
+def _earlier_files(out: Path) -> list[Path]:
+    """An earlier run's files in ``out``: its frame records, dense depth, preview and summary."""
+    patterns = ("frames/[0-9]*.json", "dense/[0-9]*.exr", "dense/[0-9]*.ply", "preview.png", "preview.mp4",
+                "summary.json")
+    return [p for pattern in patterns for p in out.glob(pattern) if p.is_file()]
 
 
 def _frames(source: Path) -> tuple[list[str], list[np.ndarray]]:
@@ -116,11 +121,8 @@ def _inputs(dataset: Path | None, sequence: str | None, calibration: Path | None
         if calibration is not None or left is not None or right is not None:
             raise PerceptionInputError("reconstruct", "--dataset brings its own calibration.json and images",
                                        "pass --dataset alone, or --calibration with --left and --right")
-        if not is_dataset(Path(dataset)):
-            raise PerceptionInputError(dataset, "not a dataset folder (no sequences/)",
-                                       "pass a folder written by `transtac-sim generate`")
-        calib = load_calibration(Path(dataset) / "calibration.json")
         pairs = sequence_files(dataset, sequence, (f"left_{kind}.png", f"right_{kind}.png"))
+        calib = load_calibration(Path(dataset) / "calibration.json")
         names_l, names_r = [a.name for a, _ in pairs], [b.name for _, b in pairs]
         frames_l, frames_r = [read_color_image(a.path) for a, _ in pairs], [read_color_image(b.path) for _, b in pairs]
     else:
@@ -188,7 +190,7 @@ def reconstruct(out: Path, *, dataset: Path | None = None, sequence: str | None 
     tracks = track_bytetrack([d[0] for d in dets])
     t_track = (time.perf_counter() - t0) / n
     out = Path(out)
-    with staged_output(out, _clear_previous, last=("summary.json",)) as work:
+    with staged_output(out, _earlier_files, last=("summary.json",)) as work:
         params = MatchParams()
         total = 0
         panels: list[np.ndarray] = []

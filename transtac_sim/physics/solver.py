@@ -143,7 +143,8 @@ class QuasiStaticSolver(LoadStepping, Assembly, HessianAssembly, ContactRecords,
         self._lag_work = reduction_buffer(2, self.device)  # friction_lag.py ``_launch_lag_change``
         self._rhs = wp.empty_like(self.u.dof_values)  # -g on the free dofs (newton.py ``_read_gradient``)
         self._gradient_read = negated_free_buffer(5, self.device)  # |g|, the load and what is read with them
-        self._wrench_work = wp.zeros(6 * len(self.indenters), dtype=wp.float64, device=self.device)  # ``_launch_wrench``
+        # filled by ``_launch_wrench`` (contact_records.py)
+        self._wrench_work = wp.zeros(6 * len(self.indenters), dtype=wp.float64, device=self.device)
         st = self._contact_state  # friction's lag kept while ``_launch_friction_lag_residual`` moves it
         self._lag_kept = (wp.empty_like(st.lag_g), wp.empty_like(st.lag_n))
         self._penetration_work = (wp.empty(self._q_contact.total_point_count(), dtype=wp.float64, device=self.device),

@@ -110,7 +110,7 @@ def _render_set(sweep: Sweep, values: dict, root: Path, folder: Path) -> dict:
     rendered = 0
     for i, setup in enumerate(setups):
         seq = contract.sequence_name(i)
-        todo = [f for f in range(frames) if not is_complete(folder, seq, f)]
+        todo = [f for f in range(frames) if not is_complete(folder, seq, f, setup.scene.outputs)]
         if not todo:
             continue
         key = mechanics_key(setup, frames)

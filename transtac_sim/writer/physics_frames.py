@@ -20,7 +20,7 @@ DIR/displacement.png    the last written frame's displacement field (reports/dis
 A run that fails at frame k keeps frames 0..k-1, records the failure in summary.json and still draws
 frame k-1. A folder is written into only when it is empty, new, or holds an earlier ``simulate`` output
 of the same scene (whose frame files are then replaced), unless ``overwrite`` is given. A run into a folder
-that holds files already is staged beside it and moved in when it ends, done or failed at a frame (staging.py):
+that holds files already is staged inside it and moved in when it ends, done or failed at a frame (staging.py):
 an interrupted or crashed run leaves the earlier one as it was.
 """
 
@@ -39,7 +39,7 @@ from transtac_sim import __version__
 from transtac_sim.scene_setup import SceneSetup
 from transtac_sim.simulation import PhysicsFrame, SimulationFailed
 from transtac_sim.writer.atomic import write_json, write_npz
-from transtac_sim.writer.staging import staged_output
+from transtac_sim.writer.staging import own_entries, staged_output
 
 KIND = "transtac-sim simulate"
 FORMAT_VERSION = 1
@@ -83,7 +83,7 @@ def check_output_folder(out: Path, scene_config: dict, overwrite: bool) -> None:
         return
     if not out.is_dir():
         raise OutputFolderInUse(f"{out} exists and is not a folder; choose another --out")
-    if overwrite or not any(out.iterdir()):
+    if overwrite or not own_entries(out):
         return
     try:
         old = json.loads((out / "summary.json").read_text())
@@ -99,14 +99,10 @@ def check_output_folder(out: Path, scene_config: dict, overwrite: bool) -> None:
                             "(nothing was changed)")
 
 
-def _clear_previous(out: Path) -> None:
-    """Remove the frame files and picture of an earlier run (only files this command writes)."""
-    frames = out / "frames"
-    if frames.is_dir():
-        for p in frames.iterdir():
-            if _FRAME_FILE.match(p.name) and p.is_file():
-                p.unlink()
-    (out / "displacement.png").unlink(missing_ok=True)
+def _earlier_files(out: Path) -> list[Path]:
+    """An earlier run's frame files and picture in ``out`` (only files this command writes)."""
+    frames = [p for p in (out / "frames").glob("*") if _FRAME_FILE.match(p.name) and p.is_file()]
+    return frames + [p for p in (out / "displacement.png",) if p.is_file()]
 
 
 def _mesh_arrays(setup: SceneSetup, meshed) -> dict[str, np.ndarray]:
@@ -217,7 +213,7 @@ def simulate_to_folder(setup: SceneSetup, out: Path, *, frames: int | None = Non
     report = SimulateReport(out, total)
     clock = StageClock()
     per_frame: list[float] = []
-    with staged_output(out, _clear_previous, last=("summary.json",)) as work:
+    with staged_output(out, _earlier_files, last=("summary.json",)) as work:
 
         def summary(status: str) -> None:
             write_json(work / "summary.json", {

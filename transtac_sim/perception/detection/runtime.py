@@ -46,8 +46,8 @@ class LearnedDetector:
             onnx_path = self.model_path.with_suffix(".onnx")
             if not onnx_path.is_file():
                 raise PerceptionInputError(onnx_path, "the model's ONNX export is missing",
-                                           "re-save the model with `transtac-sim train-detector` (it writes the .onnx beside "
-                                           "the .pt), or run the torch model on a GPU (--device cuda)")
+                                           "re-save the model with `transtac-sim train-detector` (it writes the .onnx "
+                                           "beside the .pt), or run the torch model on a GPU (--device cuda)")
             self.session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
         else:
             self.net = self.net.to(self.device)

@@ -75,7 +75,8 @@ def calibrate_stereo(left: Path, right: Path, out: Path, board: tuple[int, int],
             obj, pts_l, pts_r, K_l, d_l, K_r, d_r, size, flags=cv2.CALIB_FIX_INTRINSIC)
     except cv2.error as e:
         raise PerceptionInputError(left, f"OpenCV could not calibrate from these views ({e.err})",
-                                   "check --board and --square-mm, and take views of the board at other angles") from None
+                                   "check --board and --square-mm, and take views of the board at other angles"
+                                   ) from None
     write_json(Path(out), {"image_size": list(size), "model": "pinhole", "K_left": K_l.tolist(), "dist_left": d_l.ravel().tolist(),
                            "K_right": K_r.tolist(), "dist_right": d_r.ravel().tolist(), "R": R.tolist(),
                            "T": T.ravel().tolist(), "units": "mm", "rms_px": float(rms)})

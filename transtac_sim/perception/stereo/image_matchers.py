@@ -54,12 +54,12 @@ def sgbm_field(left: np.ndarray, right: np.ndarray, d_ref: float, halfwidth: flo
     """(h, w, 2) offset (px) (-d, 0) from the SGBM disparity d searched over d_ref +- halfwidth (rounded
     out to OpenCV's multiples of 16); NaN where SGBM gives none."""
     block, lo = 7, max(int(np.floor(d_ref - halfwidth)), 0)
-    sgbm = cv2.StereoSGBM_create(minDisparity=lo, numDisparities=16 * int(np.ceil((d_ref + halfwidth - lo) / 16)),
-                                 blockSize=block, P1=8 * block**2, P2=32 * block**2, uniquenessRatio=5,
-                                 mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    count = 16 * int(np.ceil((d_ref + halfwidth - lo) / 16))
+    sgbm = cv2.StereoSGBM_create(minDisparity=lo, numDisparities=count, blockSize=block, P1=8 * block**2,
+                                 P2=32 * block**2, uniquenessRatio=5, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
     # SGBM leaves the leftmost minDisparity + numDisparities columns unmatched: both images padded by that much
     # on the left (as dense.py ``sgbm_disparity``), so markers there are matched too
-    pad = lo + 16 * int(np.ceil((d_ref + halfwidth - lo) / 16))
+    pad = lo + count
     left_p, right_p = (cv2.copyMakeBorder(g, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0) for g in (left, right))
     d = sgbm.compute(left_p, right_p)[:, pad:].astype(np.float32) / 16.0  # fixed point, 4 fractional bits
     d[d < lo] = np.nan

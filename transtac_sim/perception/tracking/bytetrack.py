@@ -38,7 +38,8 @@ def _centre_similarity_class():
 
 
 def track_bytetrack(frames: list[Detections], association: str = "iou_enlarged", gate_px: float = 12.0,
-                    box_scale: float = 3.0, min_similarity: float = 0.1, score_split: float | None = None) -> TrackResult:
+                    box_scale: float = 3.0, min_similarity: float = 0.1,
+                    score_split: float | None = None) -> TrackResult:
     """Track markers over ``frames`` (one Detections per frame, in order). ``association``: ``iou_enlarged``
     (default: boxes ``box_scale`` times larger), ``centre`` (centre distance) or ``iou`` (the detector's boxes).
     ``score_split``: ByteTrack's split between high-score detections (associated first; the only ones that start a

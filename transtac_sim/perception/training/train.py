@@ -121,13 +121,13 @@ def train_detector(datasets: list[Path], out: Path, cfg: TrainConfig = TrainConf
     device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    train, val = load_samples([Path(d) for d in datasets], cfg.max_images)
-    whites = [s.white for s in train if s.white is not None]
-    sizes = sorted({(s.image.shape[1], s.image.shape[0]) for s in train + val})
     multiple = 16 if cfg.context else 8  # MarkerNet's coarsest stride (network.py)
     if cfg.crop_px % multiple:
         raise ValueError(f"crop {cfg.crop_px} px: must be a multiple of {multiple}"
-                         + (" with the context level" if cfg.context else ""))
+                         + (" with the context level (--context)" if cfg.context else ""))
+    train, val = load_samples([Path(d) for d in datasets], cfg.max_images)
+    whites = [s.white for s in train if s.white is not None]
+    sizes = sorted({(s.image.shape[1], s.image.shape[0]) for s in train + val})
     odd = [f"{w}x{h}" for w, h in sizes if w % multiple or h % multiple]
     if odd:
         raise PerceptionInputError(", ".join(map(str, datasets)), f"images of {', '.join(odd)} px: MarkerNet needs "
