@@ -136,3 +136,9 @@ def test_scene_name_that_is_not_a_folder_name(repo_copy: Path, name: str):
     """A scene's name names its default output folders (out/<name>/...): a path or an odd name is refused."""
     p = edit(repo_copy / "scenes/quickstart.toml", 'name = "quickstart"', f'name = "{name}"')
     assert "name: the scene's name names its default output folders" in _error(load_scene, p)
+
+
+def test_missing_hardware_model_is_the_scenes_key(repo_copy: Path):
+    p = edit(repo_copy / "scenes/quickstart.toml", 'hardware = "transtac"', 'hardware = "nohw"')
+    msg = _error(load_setup, p)
+    assert f"{p}: sensor.hardware: no file for 'nohw'" in msg

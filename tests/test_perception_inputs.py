@@ -161,3 +161,7 @@ def test_device_camera_and_output_mistakes_are_named(images: Path, tmp_path: Pat
     res = runner.invoke(app, ["track", str(images), "--camera", "middle", "--detector", "blob",
                               "--out", str(tmp_path / "t.json")])
     assert res.exit_code == 2 and "unknown camera 'middle'" in " ".join(res.output.split())
+    cv2.imwrite(str(images / "002.png"), draw_markers(grid_markers((48, 64)), (48, 64)))
+    res = runner.invoke(app, ["track", str(images), "--detector", "blob", "--out", str(tmp_path / "t.json")])
+    assert res.exit_code == 2 and "image is 64x48 px, the first frame 128x96" in " ".join(res.output.split())
+    assert not (tmp_path / "t.json").exists()

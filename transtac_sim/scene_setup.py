@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from transtac_sim.config import ConfigError, Scene, load_scene
+from transtac_sim.config.loader import resolve_named_file
 from transtac_sim.config.scene import Indenter
 from transtac_sim.indenters.loading import IndenterMesh, IndenterMeshError, load_indenter_mesh
 from transtac_sim.indenters.placement import start_pose
@@ -46,6 +47,10 @@ def load_setup(path: str | Path) -> SceneSetup:
 def build_setup(scene: Scene, path: Path, *, marker_seed: int | None = None) -> SceneSetup:
     """Resolve ``scene`` (read from ``path``: relative references start there); ``marker_seed`` replaces
     the marker layout's seed (domain randomisation)."""
+    try:  # a hardware model that is not there is the scene's mistake: name its key
+        resolve_named_file(scene.sensor.hardware, "hardware_models", path.parent)
+    except FileNotFoundError as e:
+        raise ConfigError(path, [("sensor.hardware", str(e))]) from None
     sensor = build_sensor(scene.sensor.hardware, scene.sensor.markers, layout_source=path, relative_to=path.parent,
                           marker_seed=marker_seed)
     if problems := scene.depth_problems(sensor.hardware.gel.thickness_mm):

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from transtac_sim.perception.detect import make_detector
-from transtac_sim.perception.errors import output_file
+from transtac_sim.perception.errors import PerceptionInputError, output_file
 from transtac_sim.perception.images import find_images, is_dataset, read_color_image, sequence_files
 from transtac_sim.perception.tracking.bytetrack import track_bytetrack
 from transtac_sim.perception.tracking.flow import track_flow
@@ -51,6 +51,11 @@ def track_images(target: Path, out: Path, method: str = "bytetrack", detector: s
     out = output_file(out)
     refs = sequence_images(target, sequence, camera)
     images = [read_color_image(r.path) for r in refs]
+    for r, im in zip(refs, images, strict=True):  # one camera's frames: one size
+        if im.shape != images[0].shape:
+            raise PerceptionInputError(r.path, f"image is {im.shape[1]}x{im.shape[0]} px, the first frame "
+                                       f"{images[0].shape[1]}x{images[0].shape[0]}",
+                                       "track frames of one camera (one image size)")
     detect, model_name = make_detector(detector, model, device, images=[(str(r.path), im) for r, im in zip(refs, images, strict=True)])
     t0 = time.perf_counter()
     frames = []
