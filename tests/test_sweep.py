@@ -60,6 +60,7 @@ def _write(tmp_path: Path, text: str = SWEEP, name: str = "sweep.toml") -> Path:
     ("count = [10, 16]", "count = [10, 400]\npattern = \"grid\"", "parameters.count", "closer than min_spacing_mm"),
     ("radius_mm = 0.4", "radius_mm = 0.4\ndepth_mm = [0.6, 4.9]", "parameters.depth_mm", "do not fit"),
     ("frames = 2", "frames = 2\nsize = 3", "benchmark.size", "unknown key"),
+    ("radius_mm = 0.4", "radius_mm = [0.4, nan]", "parameters.radius_mm", "nan is not a (finite) number"),
 ])
 def test_bad_sweep_file_is_one_line_naming_the_key(tmp_path: Path, old: str, new: str, key: str, words: str):
     path = _write(tmp_path, SWEEP.replace(old, new, 1))

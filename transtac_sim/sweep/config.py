@@ -37,6 +37,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -62,7 +63,7 @@ INTEGER = ("count", "seed")
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Search(_Strict):
@@ -153,7 +154,7 @@ def _check_value(path: Path, name: str, v, *, random: bool):
     if isinstance(v, dict):
         if not random:
             raise _err(path, key, "a {low, high} range needs [search] kind = \"random\"; give a list of values for a grid")
-        if set(v) != {"low", "high"} or not all(isinstance(x, (int, float)) for x in v.values()):
+        if set(v) != {"low", "high"} or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v.values()):
             raise _err(path, key, f"a range is {{low = .., high = ..}} of numbers (got {v!r})")
         if name in CHOICES:
             raise _err(path, key, f"takes one of {', '.join(CHOICES[name])}, not a range")
@@ -167,8 +168,8 @@ def _check_value(path: Path, name: str, v, *, random: bool):
         if name in CHOICES:
             if x not in CHOICES[name]:
                 raise _err(path, key, f"{x!r} is not one of {', '.join(CHOICES[name])}")
-        elif isinstance(x, bool) or not isinstance(x, (int, float)):
-            raise _err(path, key, f"{x!r} is not a number")
+        elif isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise _err(path, key, f"{x!r} is not a (finite) number")
         elif name in INTEGER and int(x) != x:
             raise _err(path, key, f"{x!r} is not a whole number")
     return values
