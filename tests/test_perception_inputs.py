@@ -125,14 +125,18 @@ def test_detect_preview_of_a_first_image_without_markers_draws_none(tmp_path: Pa
 
 
 def test_dataset_commands_take_the_complete_frames_and_name_a_missing_view(tmp_path: Path):
-    """labels.json is written last: a frame folder without it is unfinished and left out (track, reconstruct).
-    A complete frame without one camera's image is named, not paired with another frame's image."""
+    """labels.json is written last: a frame folder without it is unfinished and left out (detect, track,
+    reconstruct). A complete frame without one camera's image is named, not skipped or paired with another frame's
+    image."""
     import json
 
     from synthetic_markers import write_tiny_dataset
 
     ds = write_tiny_dataset(tmp_path / "ds", sequences=1, frames=4)
     (ds / "sequences/seq_00000/000003/labels.json").unlink()
+    res = runner.invoke(app, ["detect", str(ds), "--method", "blob", "--out", str(tmp_path / "d.json")])
+    assert res.exit_code == 0, res.output
+    assert len(json.loads((tmp_path / "d.json").read_text())["images"]) == 6  # 3 complete frames, 2 cameras
     res = runner.invoke(app, ["track", str(ds), "--detector", "blob", "--out", str(tmp_path / "t.json")])
     assert res.exit_code == 0, res.output
     frames = json.loads((tmp_path / "t.json").read_text())["frames"]
@@ -145,6 +149,10 @@ def test_dataset_commands_take_the_complete_frames_and_name_a_missing_view(tmp_p
     res = runner.invoke(app, ["reconstruct", "--dataset", str(ds), "--detector", "blob", "--out", str(tmp_path / "r")])
     text = " ".join(res.output.split())
     assert res.exit_code == 2 and "000001" in text and "right_uv.png" in text and not (tmp_path / "r").exists()
+    res = runner.invoke(app, ["detect", str(ds), "--method", "blob", "--out", str(tmp_path / "d2.json")])
+    text = " ".join(res.output.split())
+    assert res.exit_code == 2 and "000001: complete frame without right_uv.png" in text
+    assert not (tmp_path / "d2.json").exists()
 
 
 def test_device_camera_and_output_mistakes_are_named(images: Path, tmp_path: Path):

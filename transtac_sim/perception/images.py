@@ -1,5 +1,5 @@
 """Reading camera images and finding them on disk: a single image, a folder of images, or a dataset folder
-(every ``*_uv.png`` under its ``sequences/``). Images are 8-bit, BGR (OpenCV's order), H x W x 3 (``read_image``
+(the UV images of its complete frames). Images are 8-bit, BGR (OpenCV's order), H x W x 3 (``read_image``
 also returns grey H x W images, for calibration boards)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from transtac_sim.perception.dataset_files import complete_frames, pick_sequence
+from transtac_sim.perception.dataset_files import complete_frames, pick_sequence, sequences
 from transtac_sim.perception.errors import PerceptionInputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -26,25 +26,37 @@ def is_dataset(folder: Path) -> bool:
     return (folder / "sequences").is_dir()
 
 
-def find_images(target: Path, pattern: str = "**/*_uv.png") -> list[ImageRef]:
-    """The images a command works on: ``target`` itself, the images in a folder (sorted by name), or the
-    files matching the glob ``pattern`` under a dataset's ``sequences/`` (sorted; e.g. ``seq_00000/*/left_uv.png``).
-    Raises PerceptionInputError when there are none."""
+def find_images(target: Path) -> list[ImageRef]:
+    """The images a command works on: ``target`` itself, the images in a folder (sorted by name), or a dataset's UV
+    images (``dataset_uv_images``). Raises PerceptionInputError when there are none."""
     target = Path(target)
     if not target.exists():
         raise PerceptionInputError(target, "no such file or folder", "check the path")
     if target.is_file():
         return [ImageRef(target, str(target))]
     if is_dataset(target):
-        refs = [ImageRef(p, str(p.relative_to(target))) for p in sorted((target / "sequences").glob(pattern))
-                if p.is_file()]
-        what = f"no {pattern} under sequences/"
+        refs, what = dataset_uv_images(target), "no complete frame with UV images under sequences/"
     else:
         refs = [ImageRef(p, str(p)) for p in sorted(target.iterdir())
                 if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
         what = f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder"
     if not refs:
         raise PerceptionInputError(target, what, "point to an image, a folder of images or a dataset folder")
+    return refs
+
+
+def dataset_uv_images(dataset: Path) -> list[ImageRef]:
+    """The ``<camera>_uv.png`` images of every complete frame of a dataset, in sequence and frame order, named
+    relative to it. A complete frame without a camera's UV image that other frames have raises PerceptionInputError
+    naming it."""
+    frames = [f for seq in sequences(dataset) for f in complete_frames(dataset, seq)]
+    names = sorted({p.name for f in frames for p in f.glob("*_uv.png")})
+    refs = []
+    for fdir in frames:
+        if missing := [n for n in names if not (fdir / n).is_file()]:
+            raise PerceptionInputError(fdir, f"complete frame without {', '.join(missing)}",
+                                       "check the dataset with `transtac-sim validate`")
+        refs += [ImageRef(fdir / n, str((fdir / n).relative_to(dataset))) for n in names]
     return refs
 
 
