@@ -5,8 +5,10 @@ sequences, and where box-overlap association breaks.
 
 1. Sequences: each held-out sequence of datasets/perception_heldout (press, slide), track_roll (roll) and
    track_large (1.5 mm press and slide: large deformation), left camera; detections by the learned detector;
-   trackers: ByteTrack with IoU on boxes enlarged 3x (the default), with centre-distance association, with
-   IoU on the detector's boxes, and the Farneback optical-flow baseline. Matching radius 2 px.
+   trackers: ByteTrack with IoU on boxes enlarged 3x (the default), the same with ByteTrack's own score split of
+   0.5 (only detections scoring 0.5 or more start a track; by default every detection the detector reports can:
+   ``Detections.confident_from``), with centre-distance association, with IoU on the detector's boxes, and the
+   Farneback optical-flow baseline. Matching radius 2 px.
 2. Step sweep: the markers of a real frame (exact ``uv_centroid``) translated by s px per frame for 8
    frames, s = 1..14 px: IDF1 of each association. Markers are about 7 px wide: IoU on their boxes fails
    once s nears that; the centre distance holds up to its gate, enlarged boxes a little further.
@@ -37,6 +39,7 @@ from transtac_sim.perception.tracking.flow import track_flow  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 TRACKERS = {
     "ByteTrack, IoU on 3x boxes (default)": lambda dets, ims: track_bytetrack(dets, "iou_enlarged"),
+    "the same, ByteTrack's score split 0.5": lambda dets, ims: track_bytetrack(dets, "iou_enlarged", score_split=0.5),
     "ByteTrack, centre distance": lambda dets, ims: track_bytetrack(dets, "centre"),
     "ByteTrack, IoU": lambda dets, ims: track_bytetrack(dets, "iou"),
     "Farneback flow": lambda dets, ims: track_flow(dets, ims),

@@ -15,8 +15,10 @@ class Detections:
     size: np.ndarray  # (N, 2) box width, height, px
     seconds: dict[str, float] = field(default_factory=dict)  # pre-processing, network, decoding
     #: the score from which a detection is a confident one (ByteTrack's high-score detections: associated first, and
-    #: the only ones that start a track): 0.5 for the learned detector; 0 for the blob baseline, whose scores rank
-    #: blobs by brightness (every blob it reports is a detection it stands by)
+    #: the only ones that start a track). The detectors set it to the lowest score they report: the learned
+    #: detector's threshold (0.4 by default), so every detection it reports can start a track (fewer missed markers
+    #: on the held-out sequences than ByteTrack's 0.5: BENCHMARKS.md ``tracking``), and 0 for the blob baseline,
+    #: whose scores rank blobs by brightness. 0.5 (ByteTrack's split) where nothing sets it.
     confident_from: float = 0.5
 
     def __len__(self) -> int:

@@ -77,7 +77,7 @@ class LearnedDetector:
             results.append(Detections(uv, score, sz))
         t3 = time.perf_counter()
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "decode": t3 - t2}
-        return [Detections(r.uv, r.score, r.size, seconds) for r in results]
+        return [Detections(r.uv, r.score, r.size, seconds, self.score_threshold) for r in results]
 
     @torch.no_grad()
     def _detect_torch(self, images: list[np.ndarray]) -> list[Detections]:
@@ -106,7 +106,8 @@ class LearnedDetector:
         t3 = time.perf_counter()
         seconds = {"preprocess": t1 - t0, "network": t2 - t1, "decode": t3 - t2}
         ends = np.cumsum([0, *counts])
-        return [Detections(uv[a:e], conf[a:e], sz[a:e], seconds) for a, e in zip(ends[:-1], ends[1:], strict=True)]
+        return [Detections(uv[a:e], conf[a:e], sz[a:e], seconds, self.score_threshold)
+                for a, e in zip(ends[:-1], ends[1:], strict=True)]
 
 
 def _bright_levels(gray_u8: torch.Tensor) -> torch.Tensor:

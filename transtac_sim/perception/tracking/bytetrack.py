@@ -44,7 +44,7 @@ def track_bytetrack(frames: list[Detections], association: str = "iou_enlarged",
     (default: boxes ``box_scale`` times larger), ``centre`` (centre distance) or ``iou`` (the detector's boxes).
     ``score_split``: ByteTrack's split between high-score detections (associated first; the only ones that start a
     track) and low-score ones (only continue a track); by default the detector's ``Detections.confident_from``
-    (the learned detector's 0.5; 0 for the blob baseline, so every blob can start a track)."""
+    (the lowest score it reports: every detection can start a track)."""
     import supervision as sv
     from trackers import ByteTrackTracker
     from trackers.utils.iou import IoU
