@@ -42,8 +42,11 @@ def _dataset(root: Path, sequences: int = 6, frames: int = 2) -> list[tuple[str,
             done.append((seq, f))
     scene = {"outputs": {"cameras": ["left", "right"], "illuminations": ["uv", "white"], "aovs": []}}
     write_manifest(root, build_manifest(scene, "x.toml", 0, samples, ["render"], {"render": 1.0}, {}))
-    write_json(root / "calibration.json", {"image_size": [W, H], "model": "pinhole", "K_left": [], "dist_left": [],
-                                           "K_right": [], "dist_right": [], "R": [], "T": []})
+    K = [[100.0, 0.0, W / 2], [0.0, 100.0, H / 2], [0.0, 0.0, 1.0]]
+    write_json(root / "calibration.json", {"image_size": [W, H], "model": "pinhole", "K_left": K, "dist_left": [0.0] * 5,
+                                           "K_right": K, "dist_right": [0.0] * 5,
+                                           "R": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                                           "T": [-12.0, 0.0, 0.0]})
     write_coco(root, done, ["left", "right"], (W, H), seed=0)
     return done
 

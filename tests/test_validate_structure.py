@@ -40,7 +40,9 @@ def _set(path: Path, keys: tuple, value) -> None:
     ("manifest.json", ("samples",), DROP, "manifest.json: samples: required key is missing"),
     ("manifest.json", (), [], "manifest.json: should hold keys and values"),
     ("calibration.json", ("image_size",), 640, "calibration.json: image_size: should be a list (got 640)"),
-], ids=["marker without id", "markers null", "visible without uv", "no samples", "manifest a list", "image_size 640"])
+    ("calibration.json", ("R",), [[1.0, 0.0], [0.0, 1.0]], "calibration.json: R[2]: missing: the list is too short"),
+], ids=["marker without id", "markers null", "visible without uv", "no samples", "manifest a list", "image_size 640",
+        "R 2x2"])
 def test_wrong_structure_is_a_problem_line(tmp_path: Path, file: str, keys: tuple, value, problem: str):
     _dataset(tmp_path, sequences=1)
     _set(tmp_path / file, keys, value)

@@ -58,8 +58,8 @@ def _describe(err: dict) -> str:
     bounds = [f"{_RANGE_WORDS[k]} {v}" for k, v in ctx.items() if k in _RANGE_WORDS]
     if err["type"] == "extra_forbidden":
         return "unknown key (check its spelling and the documented keys)"
-    if err["type"] == "missing":
-        return "required key is missing"
+    if err["type"] == "missing":  # a list entry (an index) that is not there, or a key
+        return "missing: the list is too short" if isinstance(err["loc"][-1], int) else "required key is missing"
     if bounds:
         return f"{given!r} is out of range: allowed {' and '.join(bounds)}"
     msg = _TYPE_WORDS.get(err["type"]) or err["msg"].removeprefix("Value error, ")

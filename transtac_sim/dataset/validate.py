@@ -17,7 +17,7 @@ from transtac_sim.dataset import contract
 Point = tuple[float, float]
 Vec3 = tuple[float, float, float]
 Quad = tuple[float, float, float, float]
-Matrix = list[list[float]]
+Matrix3 = tuple[Vec3, Vec3, Vec3]
 Pixels = Annotated[int, Field(gt=0)]
 
 
@@ -52,12 +52,12 @@ class Manifest(_Json):
 class Calibration(_Json):
     image_size: tuple[Pixels, Pixels]
     model: Literal["pinhole", "fisheye"]
-    K_left: Matrix
-    dist_left: list[float]
-    K_right: Matrix
-    dist_right: list[float]
-    R: Matrix
-    T: list[float]
+    K_left: Matrix3
+    dist_left: list[float] = Field(min_length=4)
+    K_right: Matrix3
+    dist_right: list[float] = Field(min_length=4)
+    R: Matrix3
+    T: Vec3
 
 
 class View(_Json):
