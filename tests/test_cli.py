@@ -43,3 +43,19 @@ def test_generate_mps_without_nvidia_driver_is_a_clear_error(tmp_path, monkeypat
     assert r.exit_code == 2, r.output
     assert "nvidia-cuda-mps-control is not on PATH" in " ".join(r.output.split())
     assert not out.exists()
+
+
+def test_ctrl_c_inside_a_library_is_told_from_its_errors():
+    """Ctrl-C during a Mitsuba render comes back as Mitsuba's RuntimeError caused by the KeyboardInterrupt:
+    generate then says the run can be resumed instead of printing a traceback; other errors still propagate."""
+    from transtac_sim.cli import _interrupted
+
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise RuntimeError("drjit.custom(...): error while performing a custom operation") from e
+    except RuntimeError as e:
+        assert _interrupted(e)
+    assert not _interrupted(RuntimeError("the lens distortion is not invertible"))
+    assert _interrupted(KeyboardInterrupt())

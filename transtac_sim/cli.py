@@ -135,6 +135,17 @@ def render(scene: Path = SceneArg,
     console.print(f"  wrote {out}/ (images, labels.json){', ' + str(sheet) if sheet else ''}")
 
 
+def _interrupted(e: BaseException | None) -> bool:
+    """Whether ``e`` is, or was caused by, a KeyboardInterrupt (Ctrl-C)."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 @app.command()
 def generate(scene: Path = SceneArg,
              out: Path = typer.Option(..., "--out", help="dataset folder (created; an unfinished one is resumed)"),
@@ -177,6 +188,11 @@ def generate(scene: Path = SceneArg,
         except (ConfigError, MpsUnavailable) as e:
             console.print(f"[bold red]error:[/] {e}", soft_wrap=True)
             raise typer.Exit(2) from None
+        except (KeyboardInterrupt, RuntimeError) as e:  # Ctrl-C inside Mitsuba comes back as its RuntimeError
+            if not _interrupted(e):
+                raise
+            console.print(f"interrupted: the complete frames in {out} are kept; the same command resumes the run")
+            raise typer.Exit(130) from None
     tab = Table(title=f"dataset {report.root}", show_header=False)
     redone = f", {len(report.frames_redone)} damaged and written again" if report.frames_redone else ""
     tab.add_row("frames", f"{report.frames_done} done ({report.frames_skipped} already there{redone}), "
