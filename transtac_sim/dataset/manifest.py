@@ -65,10 +65,11 @@ def read_manifest(root: Path) -> dict | None:
         return None
     try:
         manifest = json.loads(p.read_text())
-        why = "" if isinstance(manifest, dict) else "not a JSON object"
     except (OSError, ValueError) as e:  # ValueError: JSON cut short or not UTF-8
-        why = str(e)
-    if not why:
+        manifest, why = None, str(e)
+    else:
+        why = "not a JSON object"
+    if isinstance(manifest, dict):
         return manifest
     raise ConfigError(p, [("", f"unreadable ({why}); it records which scene and files this dataset was made from, so "
                                f"it cannot be resumed: restore the file, or choose another --out, or delete {root} "

@@ -132,7 +132,7 @@ def validate_dataset(root: Path) -> list[str]:
             problems.append(f"manifest.json: format_version {manifest.format_version!r}, "
                             f"expected {contract.FORMAT_VERSION!r}")
         problems += _sample_problems(root, manifest.samples)
-        problems += _frame_problems(root, manifest, calib.image_size if calib else None)
+        problems += _listed_frame_problems(root, manifest, calib.image_size if calib else None)
     problems += [f"coco/{split}.json: missing" for split in ("train", "val", "test")
                  if not (root / "coco" / f"{split}.json").is_file()]
     return problems
@@ -149,7 +149,7 @@ def _sample_problems(root: Path, samples: list[Sample]) -> list[str]:
     return problems
 
 
-def _frame_problems(root: Path, manifest: Manifest, size: tuple[int, int] | None) -> list[str]:
+def _listed_frame_problems(root: Path, manifest: Manifest, size: tuple[int, int] | None) -> list[str]:
     """Each frame the manifest lists as done: its labels (against the manifest and the calibration's image
     ``size``, when readable) and its images; marker ids must agree across the frames of a sequence."""
     outputs = manifest.scene.outputs

@@ -50,13 +50,19 @@ def dataset_uv_images(dataset: Path) -> list[ImageRef]:
     relative to it. A complete frame without a camera's UV image that other frames have raises PerceptionInputError
     naming it."""
     frames = [f for seq in sequences(dataset) for f in complete_frames(dataset, seq)]
-    names = sorted({p.name for f in frames for p in f.glob("*_uv.png")})
+    names = tuple(sorted({p.name for f in frames for p in f.glob("*_uv.png")}))
+    return [ref for refs in _frame_files(dataset, frames, names) for ref in refs]
+
+
+def _frame_files(dataset: Path, frames: list[Path], files: tuple[str, ...]) -> list[tuple[ImageRef, ...]]:
+    """The ImageRefs of ``files`` in each of a dataset's complete ``frames`` (folders), named relative to the dataset;
+    a frame without one of them raises PerceptionInputError naming it."""
     refs = []
     for fdir in frames:
-        if missing := [n for n in names if not (fdir / n).is_file()]:
+        if missing := [f for f in files if not (fdir / f).is_file()]:
             raise PerceptionInputError(fdir, f"complete frame without {', '.join(missing)}",
                                        "check the dataset with `transtac-sim validate`")
-        refs += [ImageRef(fdir / n, str((fdir / n).relative_to(dataset))) for n in names]
+        refs.append(tuple(ImageRef(fdir / f, str((fdir / f).relative_to(dataset))) for f in files))
     return refs
 
 
@@ -71,14 +77,7 @@ def sequence_files(dataset: Path, sequence: str | None, files: tuple[str, ...]) 
     if not frames:
         raise PerceptionInputError(dataset / "sequences" / seq, "no complete frame (none has labels.json)",
                                    "let `transtac-sim generate` finish this sequence, or pick another one")
-    refs = []
-    for fdir in frames:
-        missing = [f for f in files if not (fdir / f).is_file()]
-        if missing:
-            raise PerceptionInputError(fdir, f"complete frame without {', '.join(missing)}",
-                                       "check the dataset with `transtac-sim validate`")
-        refs.append(tuple(ImageRef(fdir / f, str((fdir / f).relative_to(dataset))) for f in files))
-    return refs
+    return _frame_files(dataset, frames, files)
 
 
 def read_image(path: Path) -> np.ndarray:
